@@ -1,0 +1,149 @@
+"""Body-part views of the feature vector (SPEC §0, ParCo's split).
+
+A *part* (root, left/right leg, backbone, left/right arm) and a *stream*
+(holistic, arms, legs) are both index lists into the D-dim feature vector:
+
+- root: root data (4) + local velocity of joint 0 (3);
+- a limb/backbone part: per joint ric (3) + rot6d (6) + local vel (3), plus the
+  part's foot contacts for a leg;
+- stream ``holistic`` is the whole vector; ``arms``/``legs`` are the root part
+  followed by the union of their parts' features (a joint shared by two parts,
+  such as spine3 in both arms, appears once).
+
+``merge`` is the exact inverse of slicing: overlapping copies (joint 9 in three
+parts, the root in both part streams) are averaged, which leaves identical
+copies bit-exact.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from party.motion.features import feature_slices
+
+PARTS = ("root", "right_leg", "left_leg", "backbone", "right_arm", "left_arm")
+STREAMS = ("holistic", "arms", "legs")
+
+
+def _joint_feature_idx(j: int, n_joints: int) -> list[int]:
+    s = feature_slices(n_joints)
+    out = []
+    if j > 0:
+        out += list(range(s.ric.start + 3 * (j - 1), s.ric.start + 3 * j))
+        out += list(range(s.rot.start + 6 * (j - 1), s.rot.start + 6 * j))
+    out += list(range(s.vel.start + 3 * j, s.vel.start + 3 * j + 3))
+    return out
+
+
+class PartLayout:
+    """Index tables for parts, streams and coherence parts of one skeleton."""
+
+    def __init__(self, n_joints: int, parts: Mapping[str, Mapping], streams: Mapping[str, Sequence[str]],
+                 coherence: Mapping[str, Sequence[int]]):
+        self.n_joints = n_joints
+        self.feat_dim = 12 * n_joints - 1
+        sl = feature_slices(n_joints)
+        contacts = {"left": [sl.contacts.start, sl.contacts.start + 1],
+                    "right": [sl.contacts.start + 2, sl.contacts.start + 3]}
+        self.part_joints: dict[str, list[int]] = {"root": [0]}
+        self.part_index: dict[str, np.ndarray] = {
+            "root": np.array(list(range(sl.root.start, sl.root.stop)) + _joint_feature_idx(0, n_joints))}
+        for name, spec in parts.items():
+            joints = [int(j) for j in spec["joints"]]
+            idx = [i for j in joints for i in _joint_feature_idx(j, n_joints)]
+            if spec.get("contacts"):
+                idx += contacts[spec["contacts"]]
+            self.part_joints[name] = joints
+            self.part_index[name] = np.array(idx)
+        covered = np.unique(np.concatenate(list(self.part_index.values())))
+        if len(covered) != self.feat_dim:
+            raise ValueError(f"part table covers {len(covered)} of {self.feat_dim} feature channels")
+        self.stream_parts = {"holistic": list(self.part_index)}
+        self.stream_index: dict[str, np.ndarray] = {"holistic": np.arange(self.feat_dim)}
+        self._stream_joints: dict[str, list[int]] = {"holistic": list(range(n_joints))}
+        for name, members in streams.items():
+            members = ["root"] + [m for m in members if m != "root"]
+            idx = list(dict.fromkeys(i for m in members for i in self.part_index[m].tolist()))
+            self.stream_parts[name] = members
+            self.stream_index[name] = np.array(idx)
+            self._stream_joints[name] = sorted({j for m in members for j in self.part_joints[m]})
+        self.coherence_parts = {k: [int(j) for j in v] for k, v in coherence.items()}
+
+    @classmethod
+    def from_config(cls, parts_cfg: Mapping, n_joints: int) -> "PartLayout":
+        return cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["coherence"])
+
+    # ------------------------------------------------------------------ slicing
+    def index(self, name: str) -> np.ndarray:
+        if name in self.stream_index:
+            return self.stream_index[name]
+        if name in self.part_index:
+            return self.part_index[name]
+        raise KeyError(f"unknown part/stream {name!r}; streams {list(self.stream_index)}, "
+                       f"parts {list(self.part_index)}")
+
+    def stream_dim(self, name: str) -> int:
+        return len(self.index(name))
+
+    def stream_joints(self, name: str) -> list[int]:
+        """Joint ids whose positions a stream determines (root included)."""
+        return self._stream_joints[name]
+
+    def slice(self, x, name: str):
+        idx = self.index(name)
+        if isinstance(x, torch.Tensor):
+            return x[..., torch.as_tensor(idx, device=x.device)]
+        return x[..., idx]
+
+    def split(self, x, names: Sequence[str] = PARTS) -> dict:
+        return {n: self.slice(x, n) for n in names}
+
+    def merge(self, pieces: Mapping, base=None):
+        """Scatter part/stream slices back into full vectors; overlaps averaged.
+
+        Channels no piece covers come from ``base`` (else a ValueError).
+        """
+        first_name = next(iter(pieces))
+        ref = pieces[first_name]
+        is_torch = isinstance(ref, torch.Tensor)
+        lib_zeros = (lambda s: torch.zeros(s, dtype=ref.dtype, device=ref.device)) if is_torch \
+            else (lambda s: np.zeros(s, dtype=ref.dtype))
+        shape = tuple(ref.shape[:-1]) + (self.feat_dim,)
+        first = lib_zeros(shape)
+        delta = lib_zeros(shape)
+        count = np.zeros(self.feat_dim, dtype=np.int64)
+        seen = np.zeros(self.feat_dim, dtype=bool)
+        for name, val in pieces.items():
+            idx = self.index(name)
+            if val.shape[-1] != len(idx):
+                raise ValueError(f"{name}: expected width {len(idx)}, got {val.shape[-1]}")
+            new = ~seen[idx]
+            if new.any():
+                first[..., idx[new]] = val[..., new]
+            old = ~new
+            if old.any():
+                delta[..., idx[old]] = delta[..., idx[old]] + (val[..., old] - first[..., idx[old]])
+            seen[idx] = True
+            count[idx] += 1
+        cnt = torch.as_tensor(np.maximum(count, 1), dtype=ref.dtype, device=ref.device) if is_torch \
+            else np.maximum(count, 1).astype(ref.dtype)
+        out = first + delta / cnt
+        if not seen.all():
+            if base is None:
+                raise ValueError(f"pieces {list(pieces)} leave {int((~seen).sum())} channels uncovered "
+                                 "and no base was given")
+            miss = np.nonzero(~seen)[0]
+            out[..., miss] = base[..., miss]
+        return out
+
+    # ------------------------------------------------------------- positions
+    def recover_stream_joints(self, stream_feats: torch.Tensor, stream: str) -> torch.Tensor:
+        """Positions (...,T,len(stream_joints),3) of a stream's joints from its features alone."""
+        from party.motion.features import recover_from_ric
+        full = stream_feats.new_zeros(*stream_feats.shape[:-1], self.feat_dim)
+        idx = torch.as_tensor(self.index(stream), device=stream_feats.device)
+        full = full.index_copy(full.dim() - 1, idx, stream_feats)
+        joints = recover_from_ric(full, self.n_joints)
+        return joints[..., self.stream_joints(stream), :]

@@ -1,0 +1,108 @@
+"""``party prepare``: generate the synthetic dataset or validate a real one.
+
+Writes ``<paths.prepared>/index.json`` (clips, splits, captions) and
+``manifest.json`` (counts, rejected files and why); for ``dataset.kind:
+synthetic`` the dataset itself goes to ``<paths.prepared>/synthetic``. The whole
+folder is built under a temporary name and swapped in at the end, so a crash
+leaves the previous result untouched. Logs the manifest and a few rendered
+samples to MLflow.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from party.data.humanml3d import DatasetError, load_mean_std, scan_dataset
+from party.data.index import INDEX_VERSION
+from party.io import atomic_dir, write_json
+
+log = logging.getLogger(__name__)
+
+
+def build_index(cfg: DictConfig, out_dir: Path, data_root: Path, root_in_index: str) -> dict:
+    ds = cfg.dataset
+    t0 = time.time()
+    report = scan_dataset(data_root, feat_dim=ds.feat_dim, fps=ds.fps, min_len=ds.min_len,
+                          max_len=ds.max_len, strict=ds.strict, progress=cfg.progress)
+    load_mean_std(data_root, ds.feat_dim)      # fail now, naming the file, if stats are bad
+    if not report.clips:
+        raise DatasetError(f"{data_root}: no valid clip; first problems: {report.rejected[:3]}")
+    index = {"version": INDEX_VERSION, "dataset": ds.name, "root": root_in_index, "fps": ds.fps,
+             "feat_dim": ds.feat_dim, "n_joints": ds.n_joints, "skeleton": ds.skeleton,
+             "clips": report.clips}
+    write_json(out_dir / "index.json", index, indent=None)
+    counts = {}
+    for c in report.clips:
+        s = counts.setdefault(c["split"], {"clips": 0, "captions": 0, "motions": set(), "mirrors": set()})
+        s["clips"] += 1
+        s["captions"] += len(c["captions"])
+        (s["mirrors"] if c["motion"].startswith("M") else s["motions"]).add(c["motion"])
+    return {
+        "dataset": ds.name, "kind": ds.kind, "root": str(data_root),
+        "counts": {k: {"clips": v["clips"], "captions": v["captions"], "motions": len(v["motions"]),
+                       "mirrors": len(v["mirrors"])} for k, v in sorted(counts.items())},
+        "n_rejected": len(report.rejected), "rejected": report.rejected,
+        "n_bad_caption_lines": len(report.bad_lines), "bad_caption_lines": report.bad_lines,
+        "scan_seconds": round(time.time() - t0, 2),
+    }
+
+
+def run(cfg: DictConfig) -> dict:
+    from party import tracking
+    out = Path(cfg.paths.prepared)
+    t0 = time.time()
+    with atomic_dir(out) as tmp:
+        gen = {}
+        if cfg.dataset.kind == "synthetic":
+            from party.data.synthetic import write_synthetic_dataset
+            gen = write_synthetic_dataset(cfg.dataset, tmp / "synthetic", progress=cfg.progress)
+            data_root, root_in_index = tmp / "synthetic", "synthetic"
+        elif cfg.dataset.kind == "humanml3d":
+            data_root = Path(cfg.dataset.root).expanduser().resolve()
+            root_in_index = str(data_root)
+        else:
+            raise ValueError(f"dataset.kind must be 'synthetic' or 'humanml3d', got {cfg.dataset.kind!r}")
+        manifest = build_index(cfg, tmp, data_root, root_in_index)
+        if gen:
+            manifest["synthetic"] = gen
+        manifest["seconds"] = round(time.time() - t0, 2)
+        write_json(tmp / "manifest.json", manifest)
+    log.info("prepared %s: %s, %d rejected, %.1fs", cfg.dataset.name, manifest["counts"],
+             manifest["n_rejected"], manifest["seconds"])
+    print(f"prepare: {manifest['counts']} rejected={manifest['n_rejected']} in {manifest['seconds']}s")
+    with tracking.start_run(cfg, "prepare") as run:
+        run.log_metrics({f"{split}.{k}": v for split, c in manifest["counts"].items() for k, v in c.items()}
+                        | {"rejected": manifest["n_rejected"], "seconds": manifest["seconds"]})
+        tracking.log_file(out / "manifest.json")
+        _log_samples(cfg, out)
+    return manifest
+
+
+def _log_samples(cfg: DictConfig, prepared: Path) -> None:
+    """Render a few clips (first clips of the train split) and log them as artifacts."""
+    n = int(cfg.tracking.get("n_render_samples", 0))
+    if n <= 0 or os.environ.get("PARTY_NO_RENDER"):
+        return
+    import tempfile
+
+    import numpy as np
+
+    from party import tracking
+    from party.data import load_index
+    from party.data.datasets import MotionStore
+    from party.motion.features import recover_from_ric_np
+    from party.render import render_motion
+    index = load_index(prepared)
+    store = MotionStore(index.root, index.feat_dim)
+    clips = index.clips("train")[:: max(1, len(index.clips("train")) // n)][:n]
+    with tempfile.TemporaryDirectory() as tmp:
+        for c in clips:
+            joints = recover_from_ric_np(store.clip_features(c), index.n_joints)
+            path = Path(tmp) / f"{c['id'].replace('#', '_')}.gif"
+            render_motion(np.asarray(joints), path, skeleton_name=index.skeleton, fps=index.fps,
+                          title=c["captions"][0]["caption"])
+            tracking.log_file(path, "samples")

@@ -1,0 +1,64 @@
+"""Fixture builders shared by tests (no network, no real dataset needed)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from party.motion.features import joints_to_features
+from party.motion.skeleton import get_skeleton
+
+_T2M_LENGTHS = [0, .11, .11, .12, .38, .38, .14, .40, .40, .06, .12, .12,
+                .16, .09, .09, .10, .12, .12, .26, .26, .25, .25]
+
+
+def rest_pose(skeleton: str = "t2m") -> np.ndarray:
+    sk = get_skeleton(skeleton)
+    lengths = _T2M_LENGTHS if skeleton == "t2m" else [0.15] * sk.n_joints
+    pos = np.zeros((sk.n_joints, 3))
+    for chain in sk.kinematic_chain:
+        for a, b in zip(chain[:-1], chain[1:]):
+            pos[b] = pos[a] + sk.raw_offsets[b] * lengths[b]
+    pos[:, 1] -= pos[:, 1].min()
+    return pos
+
+
+def wiggle_joints(n_frames: int, seed: int = 0, skeleton: str = "t2m") -> np.ndarray:
+    """A smooth, non-trivial motion: the rest pose translated, turned and with moving limbs."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, n_frames / 20.0, n_frames)
+    pos = np.repeat(rest_pose(skeleton)[None], n_frames, 0)
+    pos += rng.normal(0, 0.03, (1, pos.shape[1], 3)) * np.sin(3 * t + rng.uniform(0, 6))[:, None, None]
+    yaw = rng.uniform(-3, 3) + 0.6 * np.sin(0.7 * t)
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    x, z = pos[..., 0].copy(), pos[..., 2].copy()
+    pos[..., 0], pos[..., 2] = c * x + s * z, -s * x + c * z
+    pos[..., 0] += (0.4 * t)[:, None] + rng.uniform(-2, 2)
+    pos[..., 2] += (0.2 * np.sin(t))[:, None] + rng.uniform(-2, 2)
+    return pos
+
+
+def write_humanml3d_fixture(root: Path, names_by_split: dict[str, list[str]], n_frames: int = 60,
+                            skeleton: str = "t2m", texts: dict[str, str] | None = None) -> Path:
+    """A tiny dataset in the exact HumanML3D layout (features computed from joints)."""
+    sk = get_skeleton(skeleton)
+    for sub in ("new_joint_vecs", "new_joints", "texts"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    feats_all = []
+    for split, names in names_by_split.items():
+        (root / f"{split}.txt").write_text("".join(n + "\n" for n in names))
+        for i, name in enumerate(names):
+            joints = wiggle_joints(n_frames + 1, seed=hash(name) % 1000, skeleton=skeleton)
+            feats, canon = joints_to_features(joints, sk)
+            np.save(root / "new_joint_vecs" / f"{name}.npy", feats)
+            np.save(root / "new_joints" / f"{name}.npy", canon[:-1].astype(np.float32))
+            feats_all.append(feats)
+            text = (texts or {}).get(name) or (
+                "a person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n"
+                "someone strolls ahead.#someone/PRON stroll/VERB ahead/ADV#0.0#0.0\n")
+            (root / "texts" / f"{name}.txt").write_text(text)
+    all_f = np.concatenate(feats_all)
+    np.save(root / "Mean.npy", all_f.mean(0).astype(np.float32))
+    np.save(root / "Std.npy", (all_f.std(0) + 1e-2).astype(np.float32))
+    (root / "all.txt").write_text("".join(n + "\n" for v in names_by_split.values() for n in v))
+    return root
