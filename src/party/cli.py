@@ -16,6 +16,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 import sys
+from pathlib import Path
 
 import party.stages as stages_pkg
 
@@ -39,8 +40,16 @@ def run_stage(stage: str, argv: list[str]) -> None:
 
     defaults = [f"hydra.run.dir=outputs/{stage}/${{now:%Y-%m-%d_%H-%M-%S}}",
                 f"hydra.sweep.dir=multirun/{stage}/${{now:%Y-%m-%d_%H-%M-%S}}",
-                "hydra.job.chdir=false"]
-    sys.argv = [f"party {stage}", *defaults, *argv]
+                "hydra.job.chdir=false",
+                # conf/hydra/* (e.g. hydra/launcher=slurm) is found; config groups of the
+                # pipeline itself are chosen when composing params.yaml (`party params`).
+                f"hydra.searchpath=[file://{Path.cwd() / 'conf'}]"]
+    # Hydra's argparse wants flags before the overrides; a user override wins over a default
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    flags = [a for a in argv if a not in overrides]
+    given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    defaults = [d for d in defaults if d.split("=", 1)[0] not in given]
+    sys.argv = [f"party {stage}", *flags, *defaults, *overrides]
     app()
 
 

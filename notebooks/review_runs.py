@@ -1,0 +1,158 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # Review party runs
+#
+# Opens the project's MLflow store (SQLite `mlruns/mlflow.db`, artifacts in
+# `mlruns/artifacts/`; see `docs/tracking.md`), lists the runs of an experiment, tables
+# their metrics per stage, shows which params differ between runs of a stage (ablations),
+# groups sweep children under their parent run, and plays the newest logged sample video.
+# Everything is local: no server, no network. Run it as a notebook
+# (`jupytext --to ipynb notebooks/review_runs.py`, or `pytest --nbmake`), with papermill
+# (`-p experiment party`), or as a script (`python notebooks/review_runs.py`).
+
+# %% tags=["parameters"]
+tracking_uri = None   # default: $MLFLOW_TRACKING_URI, else <project>/mlruns/mlflow.db
+experiment = None     # default: $PARTY_EXPERIMENT, else "party"
+stage = None          # only runs of this stage (tags.party.stage), e.g. "train_vqvae"
+max_runs = 200
+
+# %%
+import os
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+import mlflow
+import pandas as pd
+from IPython.display import Image, Video, display
+
+from party import tracking
+
+
+def project_root(start: Path) -> Path:
+    for d in [start, *start.parents]:
+        if (d / "pyproject.toml").is_file() and (d / "conf").is_dir():
+            return d
+    return start
+
+
+if tracking_uri is None:
+    root = project_root(Path.cwd().resolve())
+    tracking_uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.tracking_uri(
+        {"tracking": {"dir": str(root / "mlruns")}})
+experiment = experiment or os.environ.get("PARTY_EXPERIMENT") or "party"
+mlflow.set_tracking_uri(tracking_uri)
+client = mlflow.MlflowClient(tracking_uri)
+pd.set_option("display.width", 200)
+pd.set_option("display.max_columns", 40)
+pd.set_option("display.max_colwidth", 60)
+print("store:", tracking_uri)
+display(pd.DataFrame([{"experiment_id": e.experiment_id, "name": e.name,
+                       "artifact_location": e.artifact_location}
+                      for e in client.search_experiments()]))
+
+# %% [markdown]
+# ## Runs
+# `mlflow.search_runs` returns one row per run: `params.*` (the flattened resolved config),
+# `metrics.*` (last value of each metric) and `tags.*` (`party.stage`, `party.git_commit`,
+# `mlflow.parentRunId`, ...).
+
+# %%
+filter_string = f"tags.`party.stage` = '{stage}'" if stage else ""
+runs = mlflow.search_runs(experiment_names=[experiment], filter_string=filter_string,
+                          max_results=max_runs, order_by=["attributes.start_time DESC"])
+print(f"{len(runs)} run(s) in experiment {experiment!r}")
+base_cols = ["run_id", "tags.party.stage", "tags.mlflow.runName", "status", "start_time",
+             "tags.party.git_commit", "tags.party.git_dirty"]
+overview = runs[[c for c in base_cols if c in runs.columns]] if len(runs) else runs
+display(overview)
+
+# %% [markdown]
+# ## Metrics per stage
+# One table per stage, one row per run, its metrics as columns: compare runs side by side.
+
+# %%
+metric_cols = [c for c in runs.columns if c.startswith("metrics.")]
+stages = sorted(runs["tags.party.stage"].dropna().unique()) if len(runs) else []
+for s in stages:
+    sub = runs[runs["tags.party.stage"] == s]
+    cols = [c for c in metric_cols if sub[c].notna().any()]
+    table = sub.set_index("run_id")[["tags.mlflow.runName", *cols]]
+    print(f"\nstage {s}: {len(sub)} run(s)")
+    display(table.rename(columns=lambda c: c.removeprefix("metrics.")))
+
+# %% [markdown]
+# ## What differs between runs of a stage (ablation view)
+# Params that are not identical across the runs of a stage, next to their metrics.
+
+# %%
+param_cols = [c for c in runs.columns if c.startswith("params.")]
+for s in stages:
+    sub = runs[runs["tags.party.stage"] == s]
+    if len(sub) < 2:
+        continue
+    varying = [c for c in param_cols if sub[c].astype(str).nunique() > 1]
+    cols = [c for c in metric_cols if sub[c].notna().any()]
+    print(f"\nstage {s}: {len(varying)} param(s) differ")
+    display(sub.set_index("run_id")[varying + cols].rename(
+        columns=lambda c: c.split(".", 1)[1]))
+
+# %% [markdown]
+# ## Sweeps: children grouped under their parent run
+
+# %%
+if len(runs) and "tags.mlflow.parentRunId" in runs.columns:
+    children = runs[runs["tags.mlflow.parentRunId"].notna()]
+    for parent_id, group in children.groupby("tags.mlflow.parentRunId"):
+        print(f"\nparent {parent_id}: {len(group)} child run(s)")
+        display(group.set_index("run_id")[["tags.party.stage", "tags.mlflow.runName", "status",
+                                           *[c for c in metric_cols if group[c].notna().any()]]])
+else:
+    print("no nested runs")
+
+# %% [markdown]
+# ## Newest logged sample video
+# Artifacts are plain files under the experiment's artifact location (`file://` URIs for the
+# SQLite store: read in place); a remote server's artifacts are downloaded to a temp dir.
+
+
+# %%
+def find_videos(run_id: str, path: str = "") -> list[str]:
+    out = []
+    for f in client.list_artifacts(run_id, path):
+        if f.is_dir:
+            out += find_videos(run_id, f.path)
+        elif f.path.lower().endswith((".gif", ".mp4")):
+            out.append(f.path)
+    return out
+
+
+shown = False
+for run_id in runs["run_id"] if len(runs) else []:
+    videos = find_videos(run_id)
+    if not videos:
+        continue
+    art_uri = client.get_run(run_id).info.artifact_uri
+    if art_uri.startswith("file://"):
+        local = str(Path(unquote(urlparse(art_uri).path)) / videos[0])
+    else:
+        local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=videos[0],
+                                                    tracking_uri=tracking_uri)
+    print(f"run {run_id}: {videos[0]} ({len(videos)} video(s) in the run)\n{local}")
+    display(Image(filename=local) if local.lower().endswith(".gif")
+            else Video(local, embed=True))
+    shown = True
+    break
+if not shown:
+    print("no run has logged a video yet")

@@ -1,0 +1,257 @@
+"""party.tracking: the MLflow convention (SQLite store + artifacts on disk under mlruns/)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from party import tracking
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def make_cfg(store: Path, **tracking_kw):
+    t = {"enabled": True, "experiment": "test", "uri": None, "dir": str(store),
+         "parent_run_id": None, "log_system_metrics": False, "log_model": False,
+         "n_render_samples": 1, "video": {"format": "gif", "max_frames": 8}}
+    t.update(tracking_kw)
+    return OmegaConf.create({
+        "seed": 3,
+        "vqvae": {"window": 64, "codebook": {"size": 512, "dim": 512}, "lr": 2e-4,
+                  "note": "x" * 7000, "chains": [[0, 2, 5], [0, 1, 4]]},
+        "parts": [{"name": "arms", "joints": [9, 13]}, {"name": "legs", "joints": [1, 2]}],
+        "derived": "${vqvae.window}",
+        "tracking": t,
+    })
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """One SQLite store for the module (creating it and importing MLflow is the slow part)."""
+    with pytest.MonkeyPatch.context() as mp:
+        for var in ("MLFLOW_TRACKING_URI", "DVC_ROOT", "DVC_EXP_NAME", "RANK", "LOCAL_RANK",
+                    "SLURM_PROCID", "NODE_RANK", "MLFLOW_RUN_ID"):
+            mp.delenv(var, raising=False)
+        yield tmp_path_factory.mktemp("tracking") / "mlruns"
+
+
+def _runs(cfg, **kw):
+    import mlflow
+    return mlflow.search_runs(experiment_names=[cfg.tracking.experiment], **kw)
+
+
+# ------------------------------------------------------------------ pure (no MLflow)
+
+def test_tracking_uri_precedence(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    monkeypatch.chdir(tmp_path)
+    cfg = make_cfg(Path("mlruns"))
+    assert tracking.tracking_uri(cfg) == f"sqlite:///{tmp_path.resolve()}/mlruns/mlflow.db"
+    assert tracking.artifact_location(tracking.tracking_uri(cfg)) == \
+        (tmp_path.resolve() / "mlruns" / "artifacts").as_uri()
+    # DVC sets DVC_ROOT to the parent repo, also for queued experiments in temp copies
+    monkeypatch.setenv("DVC_ROOT", "/somewhere/repo")
+    assert tracking.tracking_uri(cfg) == "sqlite:////somewhere/repo/mlruns/mlflow.db"
+    cfg.tracking.uri = "http://127.0.0.1:5000"
+    assert tracking.tracking_uri(cfg) == "http://127.0.0.1:5000"
+    assert tracking.artifact_location("http://127.0.0.1:5000") is None
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:////elsewhere/x.db")
+    assert tracking.tracking_uri(cfg) == "sqlite:////elsewhere/x.db"
+    assert tracking.artifact_location("sqlite:////elsewhere/x.db") == "file:///elsewhere/artifacts"
+
+
+def test_flatten_config_keys_lists_truncation(tmp_path):
+    flat = tracking.flatten_config(make_cfg(tmp_path), max_value_len=100)
+    assert flat["vqvae.window"] == "64"
+    assert flat["vqvae.codebook.size"] == "512"
+    assert flat["vqvae.lr"] == "0.0002"
+    assert flat["derived"] == "64"                      # interpolations resolved
+    assert json.loads(flat["vqvae.chains"]) == [[0, 2, 5], [0, 1, 4]]
+    assert flat["parts.1.name"] == "legs" and json.loads(flat["parts.0.joints"]) == [9, 13]
+    assert len(flat["vqvae.note"]) == 100 and flat["vqvae.note"].endswith("...")
+    assert flat["tracking.uri"] == "None"
+    assert tracking.flatten_config({"a b": {"c(d)": 1}}) == {"a b.c_d_": "1"}
+    # unresolvable interpolations (e.g. ${hydra:...} outside Hydra) are logged as written
+    bad = OmegaConf.create({"x": "${oops.missing}", "y": 1})
+    assert tracking.flatten_config(bad) == {"x": "${oops.missing}", "y": "1"}
+
+
+def test_disabled_runs_without_mlflow(tmp_path):
+    cfg = make_cfg(tmp_path / "mlruns", enabled=False)
+    code = textwrap.dedent(f"""
+        import sys
+        from omegaconf import OmegaConf
+        from party import tracking
+        cfg = OmegaConf.create({OmegaConf.to_container(cfg)!r})
+        with tracking.start_run(cfg, "prepare") as run:
+            assert run.info.run_id is None and not run.active
+            run.log_metrics({{"a": 1.0}}); run.log_json({{"a": 1}}, "x.json"); run.log_params({{"p": 1}})
+            tracking.log_metrics({{"a": 1.0}}); tracking.log_json({{"a": 1}}, "x.json")
+            tracking.log_video(None, "v.gif")
+            assert tracking.lightning_logger(cfg, run) is False
+        assert "mlflow" not in sys.modules, "disabled tracking must not import mlflow"
+        print("ok")
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "ok"
+    assert not (tmp_path / "mlruns").exists()
+
+
+# ------------------------------------------------------------------ with a SQLite store
+
+def test_run_roundtrip(store, tmp_path):
+    import mlflow
+
+    cfg = make_cfg(store)
+    extra = tmp_path / "report.txt"
+    extra.write_text("hello")
+    joints = np.zeros((6, 22, 3))
+    joints[:, :, 1] = np.linspace(0, 1.7, 22)
+    with tracking.start_run(cfg, "train_vqvae", run_name="rt", tags={"purpose": "test"}) as run:
+        assert isinstance(run, mlflow.ActiveRun)
+        run.log_metrics({"loss": 1.5}, step=0)
+        tracking.log_metrics({"loss": 0.5}, step=1)
+        tracking.log_json({"fid": 0.25}, "eval/metrics.json")
+        tracking.log_file(extra, "reports")
+        run.log_video(joints, "samples/rest.gif", title="stands still", max_frames=3)
+        run_id = run.info.run_id
+    df = _runs(cfg, filter_string="tags.purpose = 'test'")
+    assert len(df) == 1
+    row = df.iloc[0]
+    assert row.run_id == run_id and row.status == "FINISHED"
+    assert row["tags.party.stage"] == "train_vqvae" and row["tags.mlflow.runName"] == "rt"
+    assert row["tags.party.git_commit"] and row["tags.party.git_dirty"] in ("true", "false", "unknown")
+    assert row["params.vqvae.window"] == "64" and row["params.derived"] == "64"
+    assert len(row["params.vqvae.note"]) <= tracking._mlflow_param_limit()
+    assert row["metrics.loss"] == 0.5
+    client = mlflow.MlflowClient()
+    assert [m.value for m in client.get_metric_history(run_id, "loss")] == [1.5, 0.5]
+    # artifacts live on disk next to the database
+    exp = client.get_experiment_by_name("test")
+    assert exp.artifact_location == (store / "artifacts").resolve().as_uri()
+    art = store / "artifacts" / run_id / "artifacts"
+    assert (store / "mlflow.db").is_file()
+    assert json.loads((art / "eval" / "metrics.json").read_text()) == {"fid": 0.25}
+    assert (art / "reports" / "report.txt").read_text() == "hello"
+    assert (art / "samples" / "rest.gif").read_bytes()[:6] == b"GIF89a"
+    logged = OmegaConf.load(art / "config.yaml")
+    assert logged.vqvae.note == "x" * 7000 and logged.derived == 64  # full, resolved
+
+
+def test_failed_run_is_marked(store):
+    cfg = make_cfg(store)
+    with pytest.raises(RuntimeError, match="boom"):
+        with tracking.start_run(cfg, "evaluate", tags={"purpose": "fail"}):
+            tracking.log_metrics({"x": 1.0})
+            raise RuntimeError("boom")
+    row = _runs(cfg, filter_string="tags.purpose = 'fail'").iloc[0]
+    assert row.status == "FAILED" and row["metrics.x"] == 1.0
+    assert tracking.active_run_id() is None
+
+
+def test_nested_and_parent_runs(store):
+    cfg = make_cfg(store)
+    with tracking.start_run(cfg, "sweep", tags={"purpose": "nest"}) as parent:
+        with tracking.start_run(cfg, "train_vqvae", nested=True, tags={"purpose": "nest"}) as child:
+            assert tracking.active_run_id() == child.info.run_id
+        assert tracking.active_run_id() == parent.info.run_id
+    # a later process joins the sweep through tracking.parent_run_id (e.g. dvc exp -S)
+    cfg2 = make_cfg(store, parent_run_id=parent.info.run_id)
+    with tracking.start_run(cfg2, "evaluate", tags={"purpose": "nest"}) as late:
+        # the configured parent is for the top-level run; runs nested inside nest under it
+        with tracking.start_run(cfg2, "render", nested=True, tags={"purpose": "nest"}) as inner:
+            pass
+    df = _runs(cfg, filter_string="tags.purpose = 'nest'").set_index("run_id")
+    assert df.loc[child.info.run_id, "tags.mlflow.parentRunId"] == parent.info.run_id
+    assert df.loc[late.info.run_id, "tags.mlflow.parentRunId"] == parent.info.run_id
+    assert df.loc[inner.info.run_id, "tags.mlflow.parentRunId"] == late.info.run_id
+    assert df.loc[parent.info.run_id].isna()["tags.mlflow.parentRunId"]
+
+
+def test_non_zero_rank_logs_nothing(store, monkeypatch):
+    cfg = make_cfg(store)
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    with tracking.start_run(cfg, "train_vqvae", tags={"purpose": "rank1"}) as run:
+        assert run.info.run_id is None
+        tracking.log_metrics({"x": 1.0})
+        assert tracking.lightning_logger(cfg, run) is False
+    monkeypatch.delenv("LOCAL_RANK")
+    assert len(_runs(cfg, filter_string="tags.purpose = 'rank1'")) == 0
+
+
+def test_lightning_logger_bound_to_run(store):
+    pytest.importorskip("lightning")
+    cfg = make_cfg(store)
+    with tracking.start_run(cfg, "train_vqvae", tags={"purpose": "pl"}) as run:
+        logger = tracking.lightning_logger(cfg, run)
+        assert logger.run_id == run.info.run_id
+        logger.log_metrics({"train/loss": 2.0}, step=3)
+        logger.log_hyperparams({"model": {"width": 8}})
+        logger.finalize("success")          # the stock logger would end the run here
+        assert tracking.active_run_id() == run.info.run_id
+        tracking.log_metrics({"after_fit": 1.0})
+    row = _runs(cfg, filter_string="tags.purpose = 'pl'").iloc[0]
+    assert row["metrics.train/loss"] == 2.0 and row["metrics.after_fit"] == 1.0
+    assert row["params.model/width"] == "8" and row.status == "FINISHED"
+
+
+_WORKER = textwrap.dedent("""
+    import sys
+    from omegaconf import OmegaConf
+    from party import tracking
+    cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "conc", "dir": sys.argv[1]},
+                            "worker": int(sys.argv[2])})
+    with tracking.start_run(cfg, "worker", tags={"worker": sys.argv[2]}) as run:
+        for step in range(40):
+            tracking.log_metrics({"m": float(step), "w": float(sys.argv[2])}, step=step)
+        tracking.log_json({"worker": sys.argv[2]}, "w.json")
+    print(run.info.run_id)
+""")
+
+
+def test_concurrent_processes_share_a_fresh_store(tmp_path):
+    """Two processes create the store and the experiment and log at the same time."""
+    import mlflow
+
+    d = tmp_path / "mlruns"
+    env = {k: v for k, v in os.environ.items() if k not in ("MLFLOW_TRACKING_URI", "DVC_ROOT")}
+    procs = [subprocess.Popen([sys.executable, "-c", _WORKER, str(d), str(i)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for i in range(2)]
+    outs = [p.communicate(timeout=180) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+    client = mlflow.MlflowClient(f"sqlite:///{d}/mlflow.db")
+    exps = [e for e in client.search_experiments() if e.name == "conc"]
+    assert len(exps) == 1
+    runs = client.search_runs([exps[0].experiment_id])
+    assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs)
+    for r in runs:
+        assert len(client.get_metric_history(r.info.run_id, "m")) == 40
+        art = d / "artifacts" / r.info.run_id / "artifacts" / "w.json"
+        assert json.loads(art.read_text()) == {"worker": r.data.tags["worker"]}
+
+
+def test_review_notebook_runs(store, tmp_path):
+    """notebooks/review_runs.py (jupytext percent) runs as a script against a store."""
+    cfg = make_cfg(store)
+    with tracking.start_run(cfg, "evaluate", tags={"purpose": "nb"}) as run:
+        tracking.log_metrics({"fid": 0.3})
+        joints = np.zeros((4, 22, 3))
+        joints[:, :, 1] = np.linspace(0, 1.7, 22)
+        tracking.log_video(joints, "samples/a.gif")
+    env = os.environ | {"MLFLOW_TRACKING_URI": tracking.tracking_uri(cfg),
+                        "PARTY_EXPERIMENT": "test", "MPLBACKEND": "Agg"}
+    r = subprocess.run([sys.executable, str(REPO / "notebooks" / "review_runs.py")], env=env,
+                       capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert run.info.run_id in r.stdout and "samples/a.gif" in r.stdout
