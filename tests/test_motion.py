@@ -95,3 +95,16 @@ def test_stream_joints_recovered_from_stream_alone(repo_root):
     for stream in ("arms", "legs"):
         got = layout.recover_stream_joints(layout.slice(x, stream), stream).numpy()
         assert np.abs(got - canon[:-1][:, layout.stream_joints(stream)]).max() < 1e-4
+
+
+def test_roundtrip_through_a_full_turn():
+    """Facing passing 180 degrees from the start (quaternion hemisphere flip) still round-trips."""
+    sk = get_skeleton("t2m")
+    n = 80
+    yaw = np.linspace(0, 2 * np.pi, n)
+    pose = rest_pose()
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    joints = np.repeat(pose[None], n, 0)
+    joints[..., 0], joints[..., 2] = c * pose[:, 0] + s * pose[:, 2], -s * pose[:, 0] + c * pose[:, 2]
+    feats, canon = joints_to_features(joints, sk)
+    assert np.abs(recover_from_ric_np(feats, 22) - canon[:-1]).max() < 1e-4

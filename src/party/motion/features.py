@@ -144,6 +144,8 @@ def joints_to_features(joints: np.ndarray, skel: Skeleton, feet_thre: float = 0.
 
     velocity = qrot_np(r_rot[1:], pos[1:, 0] - pos[:-1, 0])
     r_velocity = qmul_np(r_rot[1:], qinv_np(r_rot[:-1]))
+    # same hemisphere (w >= 0): qbetween flips sign where the facing passes 180 degrees
+    r_velocity = r_velocity * np.where(r_velocity[:, :1] < 0, -1.0, 1.0)
     # body-frame (root-relative, facing +Z) positions
     ric = pos.copy()
     ric[..., 0] -= pos[:, 0:1, 0]
