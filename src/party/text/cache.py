@@ -1,0 +1,190 @@
+"""Durable part-text cache and the loop that fills it.
+
+``PartTextCache`` is SQLite in WAL mode, keyed by (backend, model, prompt_version, caption); every
+answer is committed as soon as it arrives, so a crash or Ctrl-C loses at most the requests in
+flight and never corrupts what is stored (SQLite's journal guarantees it). The cache lives
+outside DVC's outs (``part_texts.cache_path``), so DVC never deletes it before a rerun.
+
+``fill_part_texts`` asks the backend for every caption not in the cache, with a thread pool of
+``concurrency`` workers; only the main thread writes to SQLite.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from pathlib import Path
+
+from tqdm import tqdm
+
+from party.text.backends.base import BackendError, PartTextResult
+
+log = logging.getLogger(__name__)
+PARTS = ("arms", "legs")
+
+
+class PartTextCache:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.db = sqlite3.connect(self.path)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            with self.db:
+                self.db.execute(
+                    "CREATE TABLE IF NOT EXISTS part_texts (backend TEXT NOT NULL, model TEXT NOT NULL, "
+                    "prompt_version TEXT NOT NULL, caption TEXT NOT NULL, parts TEXT NOT NULL, "
+                    "fallback INTEGER NOT NULL, reason TEXT, attempts INTEGER, raw TEXT, created REAL, "
+                    "PRIMARY KEY (backend, model, prompt_version, caption))")
+                self.db.execute(
+                    "CREATE TABLE IF NOT EXISTS prompts (backend TEXT NOT NULL, model TEXT NOT NULL, "
+                    "prompt_version TEXT NOT NULL, fingerprint TEXT NOT NULL, "
+                    "PRIMARY KEY (backend, model, prompt_version))")
+        except sqlite3.DatabaseError as e:
+            raise sqlite3.DatabaseError(f"{self.path}: not a usable part-text cache ({e})") from e
+
+    def check_prompt(self, backend: str, model: str, prompt_version: str, fingerprint: str) -> None:
+        """Refuse a prompt whose text changed while ``prompt_version`` did not."""
+        row = self.db.execute("SELECT fingerprint FROM prompts WHERE backend=? AND model=? AND "
+                              "prompt_version=?", (backend, model, prompt_version)).fetchone()
+        if row is None:
+            with self.db:
+                self.db.execute("INSERT INTO prompts VALUES (?,?,?,?)", (backend, model, prompt_version, fingerprint))
+        elif row[0] != fingerprint:
+            raise ValueError(f"{self.path}: the prompt for prompt_version={prompt_version!r} changed "
+                             f"(fingerprint {row[0]} -> {fingerprint}); set a new part_texts.prompt_version")
+
+    def get_many(self, backend: str, model: str, prompt_version: str, captions: list[str]) -> dict[str, dict]:
+        """caption -> {"parts", "fallback", "reason"} for valid stored rows."""
+        out = {}
+        chunk = 400
+        for i in range(0, len(captions), chunk):
+            part = captions[i:i + chunk]
+            q = (f"SELECT caption, parts, fallback, reason FROM part_texts WHERE backend=? AND model=? "
+                 f"AND prompt_version=? AND caption IN ({','.join('?' * len(part))})")
+            for cap, parts, fb, reason in self.db.execute(q, [backend, model, prompt_version, *part]):
+                try:
+                    p = json.loads(parts)
+                    if all(isinstance(p.get(k), str) and p[k] for k in PARTS):
+                        out[cap] = {"parts": {k: p[k] for k in PARTS}, "fallback": bool(fb), "reason": reason}
+                except (ValueError, AttributeError):
+                    pass                                       # unreadable row: asked again
+        return out
+
+    def put(self, backend: str, model: str, prompt_version: str, caption: str, res: PartTextResult) -> None:
+        with self.db:                                          # one transaction = one answer
+            self.db.execute("INSERT OR REPLACE INTO part_texts VALUES (?,?,?,?,?,?,?,?,?,?)",
+                            (backend, model, prompt_version, caption, json.dumps(res.parts),
+                             int(res.fallback), res.reason, res.calls, res.raw, time.time()))
+
+    def count(self) -> int:
+        return self.db.execute("SELECT COUNT(*) FROM part_texts").fetchone()[0]
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
+                    progress: bool = True) -> tuple[dict[str, dict], dict]:
+    """Part texts for every caption (cache first, then the backend). Returns
+    (caption -> {"arms", "legs"}, stats)."""
+    captions = list(dict.fromkeys(c for c in captions))
+    pv = str(cfg.prompt_version)
+    cache.check_prompt(backend.name, backend.model, pv, backend.fingerprint)
+    cached = cache.get_many(backend.name, backend.model, pv, captions)
+    if bool(cfg.get("retry_fallbacks", False)):
+        cached = {c: r for c, r in cached.items() if not r["fallback"]}
+    results = {c: r["parts"] for c, r in cached.items()}
+    fallbacks = {c: r["reason"] for c, r in cached.items() if r["fallback"]}
+    todo = [c for c in captions if c not in cached]
+    stats = {"captions": len(captions), "hits": len(cached), "misses": len(todo), "calls": 0,
+             "retries": 0, "format_failures": 0, "fallbacks_new": 0, "request_failures": 0}
+    request_failed: dict[str, str] = {}
+    t0 = time.time()
+
+    def record(cap: str, res: PartTextResult) -> None:
+        stats["calls"] += res.calls
+        stats["retries"] += res.retries
+        stats["format_failures"] += res.format_failures
+        results[cap] = res.parts
+        if res.fallback:
+            fallbacks[cap] = res.reason
+            stats["fallbacks_new"] += 1
+        if res.cacheable:
+            cache.put(backend.name, backend.model, pv, cap, res)
+        else:
+            stats["request_failures"] += 1
+            request_failed[cap] = res.reason
+
+    workers = max(1, int(cfg.get("concurrency", 1)))
+    max_consecutive = int(cfg.get("max_consecutive_failures", 0)) or None
+    bar = tqdm(total=len(todo), desc=f"part texts ({backend.name})", disable=not progress or not todo)
+    stop: threading.Event = getattr(backend, "stop", threading.Event())
+    if workers == 1:
+        for cap in todo:
+            record(cap, backend.describe(cap))
+            bar.update()
+    else:
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="part-texts")
+        consecutive = 0
+        try:
+            pending, queue = set(), iter(todo)
+            future_cap = {}
+            for cap in queue:                                  # keep at most 2x workers queued
+                f = pool.submit(backend.describe, cap)
+                future_cap[f] = cap
+                pending.add(f)
+                if len(pending) >= 2 * workers:
+                    break
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    res = f.result()                           # BackendError propagates
+                    record(future_cap.pop(f), res)
+                    bar.update()
+                    consecutive = consecutive + 1 if not res.cacheable else 0
+                    if max_consecutive and consecutive >= max_consecutive:
+                        raise BackendError(f"{consecutive} captions in a row failed after retries "
+                                           f"(last: {res.reason}); is the server at "
+                                           f"{cfg.get('base_url')} up?")
+                    nxt = next(queue, None)
+                    if nxt is not None:
+                        nf = pool.submit(backend.describe, nxt)
+                        future_cap[nf] = nxt
+                        pending.add(nf)
+        except BaseException:
+            stop.set()                                         # workers stop at their next request/sleep
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        finally:
+            bar.close()
+        pool.shutdown(wait=True)
+    bar.close()
+    stats["fallbacks"] = len(fallbacks)
+    stats["seconds"] = round(time.time() - t0, 3)
+    stats["backend"], stats["model"], stats["prompt_version"] = backend.name, backend.model, pv
+    stats["prompt_fingerprint"] = backend.fingerprint
+    stats["fallback_captions"] = fallbacks
+    stats["request_failed_captions"] = request_failed
+    return results, stats
+
+
+def load_part_texts(path: str | Path) -> dict[str, dict]:
+    """{caption: {"arms", "legs"}} as written by `party cache_part_texts`, validated."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "part_texts.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: not found; run `party cache_part_texts`")
+    try:
+        obj = json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); rerun `party cache_part_texts`") from e
+    for cap, parts in obj.items():
+        if not (isinstance(parts, dict) and all(isinstance(parts.get(k), str) and parts[k] for k in ("arms", "legs"))):
+            raise ValueError(f"{path}: entry for caption {cap!r} lacks non-empty 'arms'/'legs' texts")
+    return obj
