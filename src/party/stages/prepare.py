@@ -69,6 +69,7 @@ def run(cfg: DictConfig) -> dict:
         manifest = build_index(cfg, tmp, data_root, root_in_index)
         if gen:
             manifest["synthetic"] = gen
+            manifest["root"] = str(out / root_in_index)   # where it lands, not the temp name
         manifest["seconds"] = round(time.time() - t0, 2)
         write_json(tmp / "manifest.json", manifest)
     log.info("prepared %s: %s, %d rejected, %.1fs", cfg.dataset.name, manifest["counts"],

@@ -1,0 +1,215 @@
+"""The evaluation protocol: replications over sources x evaluators -> mean ± CI.
+
+Per replication (Guo et al. 2022): every clip of the split is drawn once
+(random caption, random crop); an independent second draw of the ground
+truth gives the FID reference statistics; every source is embedded by
+every applicable evaluator; R-Precision (B = 32 and B = 256), FID, MM-Dist
+and Diversity are computed; TC/SC on full-body sources; MPJPE on
+reconstructions. MultiModality runs its own replications on generated
+runs with repeats.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from party.evaluation import metrics as M
+from party.evaluation.coherence import Parts, SCReference, spatial_coherence, temporal_coherence
+from party.evaluation.evaluator import Evaluator
+from party.evaluation.sources import GeneratedSource, MotionSet, content_key
+from party.evaluation.stats import aggregate
+
+log = logging.getLogger(__name__)
+
+
+class Embedder:
+    """Embeds texts and motions with one evaluator, memoised by content.
+
+    Texts are keyed by caption + tokens; motions by a hash of their feature
+    bytes (the evaluator is deterministic in eval mode, and
+    ``Evaluator.motion_input`` pads every batch to the same length, so an
+    embedding does not depend on its batch). Replications redraw captions and
+    crops; a crop seen before (ground-truth clips have few possible crops, a
+    generated file is fixed) is not embedded again.
+    """
+
+    def __init__(self, ev: Evaluator, batch_size: int = 256):
+        self.ev, self.bs = ev.eval(), batch_size
+        self.text_cache: dict[tuple, torch.Tensor] = {}
+        self.motion_cache: dict[bytes, torch.Tensor] = {}
+
+    @torch.no_grad()
+    def texts(self, ms: MotionSet) -> torch.Tensor:
+        keys = [(c, tuple(t) if t else None) for c, t in zip(ms.captions, ms.tokens, strict=True)]
+        todo = list(dict.fromkeys(k for k in keys if k not in self.text_cache))
+        for i in range(0, len(todo), self.bs):
+            chunk = todo[i : i + self.bs]
+            emb = self.ev.embed_text([c for c, _ in chunk], [list(t) if t else None for _, t in chunk]).cpu()
+            self.text_cache.update(zip(chunk, emb, strict=True))
+        return torch.stack([self.text_cache[k] for k in keys])
+
+    @torch.no_grad()
+    def motions(self, feats: list[np.ndarray] | MotionSet) -> torch.Tensor:
+        if isinstance(feats, MotionSet):
+            keys, feats = feats.content_keys, feats.feats
+        else:
+            keys = [content_key(f) for f in feats]
+        first = {k: i for i, k in reversed(list(enumerate(keys)))}
+        todo = [i for k, i in first.items() if k not in self.motion_cache]
+        lengths = np.array([len(f) for f in feats])
+        todo.sort(key=lambda i: -lengths[i])
+        for b in range(0, len(todo), self.bs):
+            idx = todo[b : b + self.bs]
+            T = int(lengths[idx].max())
+            x = np.zeros((len(idx), T, feats[idx[0]].shape[-1]), dtype=np.float32)
+            for k, j in enumerate(idx):
+                x[k, : lengths[j]] = feats[j]
+            emb = self.ev.embed_motion(torch.from_numpy(x), torch.as_tensor(lengths[idx])).cpu()
+            self.motion_cache.update({keys[j]: e for j, e in zip(idx, emb, strict=True)})
+        return torch.stack([self.motion_cache[k] for k in keys])
+
+
+def retrieval_metrics(t: torch.Tensor, m: torch.Tensor, ref: M.FrechetReference | None, cfg: Mapping,
+                      rng: np.random.Generator) -> dict[str, float]:
+    out: dict[str, float] = {}
+    n, k = len(t), int(cfg["top_k"])
+    for bs, tag in ((int(cfg["batch_size"]), ""), (int(cfg["large_batch_size"]), f"_b{int(cfg['large_batch_size'])}")):
+        if n >= bs:
+            rp = M.r_precision(t, m, bs, k, rng=rng)
+            out.update({f"top{i + 1}{tag}": float(rp[i]) for i in range(k)})
+    out["mm_dist"] = M.matching_score(t, m)
+    if ref is not None and len(m) > 1:
+        out["fid"] = ref.fid(m)
+    times = min(int(cfg["diversity_times"]), n - 1)
+    if times >= 2:
+        out["diversity"] = M.diversity(m, times, rng=rng)
+    return out
+
+
+def motion_joints(feats: list[np.ndarray], n_joints: int) -> list[np.ndarray]:
+    from party.motion import recover_from_ric_np
+
+    return [recover_from_ric_np(f.astype(np.float32), n_joints) for f in feats]
+
+
+class CoherenceScorer:
+    """Per-motion TC and SC, memoised by feature content like ``Embedder``."""
+
+    def __init__(self, parts: Parts, sc_ref: SCReference | None, c: Mapping, n_joints: int):
+        self.parts, self.sc_ref, self.c, self.n_joints = parts, sc_ref, c, n_joints
+        self.cache: dict[bytes, tuple[float, float]] = {}
+
+    def __call__(self, ms: MotionSet) -> dict[str, float]:
+        c = self.c
+        keys, feats = ms.content_keys, ms.feats
+        todo = list({k: i for i, k in reversed(list(enumerate(keys))) if k not in self.cache}.items())
+        if todo:
+            joints = motion_joints([feats[i] for _, i in todo], self.n_joints)
+            tc = temporal_coherence(joints, self.parts, float(c["sigma"]), float(c["kappa"]), int(c["window"]),
+                                    int(c["tau_max"]), float(c["eps"]), c.get("stride"))
+            sc = np.full(len(todo), np.nan)
+            if self.sc_ref is not None:
+                sc = spatial_coherence(joints, self.parts, self.sc_ref, float(c["beta_d"]), float(c["beta_theta"]),
+                                       float(c["eps"]))
+            self.cache.update({k: (float(a), float(b)) for (k, _), a, b in zip(todo, tc, sc, strict=True)})
+        vals = np.array([self.cache[k] for k in keys])
+        out = {"tc": float(np.nanmean(vals[:, 0]))}
+        if self.sc_ref is not None:
+            out["sc"] = float(np.nanmean(vals[:, 1]))
+        return out
+
+
+def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizers: dict,
+                 generated: list[GeneratedSource],
+                 parts: Parts | None, sc_ref: SCReference | None, n_joints: int, layout=None,
+                 progress: bool = True) -> dict[str, dict[str, dict]]:
+    """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}}}"""
+    rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    coh = cfg.get("coherence", {})
+    scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh.get("enabled", True) and parts is not None else None
+    seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
+    for ss in tqdm(seeds, desc="replications", disable=not progress):
+        rng = np.random.default_rng(ss)
+        gt = gt_src.draw(rng)
+        gt_ref = gt_src.draw(rng)
+        sets: dict[str, tuple[MotionSet, list[str], bool]] = {}
+        if cfg["sources"].get("ground_truth", True):
+            sets["ground_truth"] = (gt, list(embedders), True)
+        for stream, src in tokenizers.items():
+            rec = src.reconstruct(gt)
+            streams = list(embedders) if stream == "holistic" else [s for s in embedders if s == stream]
+            sets[f"recon_{stream}"] = (rec, streams, stream == "holistic")
+            rows[f"recon_{stream}"]["reconstruction"].append(reconstruction_metrics(rec, gt, layout, n_joints, cfg))
+        for g in generated:
+            sets[g.name] = (g.draw(rng), list(embedders), True)
+        for stream, emb in embedders.items():
+            ref = M.FrechetReference.of(emb.motions(gt_ref))
+            for name, (ms, streams, _) in sets.items():
+                if stream in streams:
+                    m = emb.motions(ms)
+                    rows[name][stream].append(retrieval_metrics(emb.texts(ms), m, ref, cfg, rng))
+        if scorer is not None:
+            for name, (ms, _, full_body) in sets.items():
+                if full_body:
+                    rows[name]["coherence"].append(scorer(ms))
+    z = float(cfg.get("ci_z", 1.96))
+    order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
+    out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
+    if "holistic" in embedders:
+        for g in generated:
+            mm = multimodality(g, embedders["holistic"], cfg["multimodality"], int(cfg["seed"]))
+            if mm is not None:
+                out[g.name].setdefault("holistic", {})["multimodality"] = mm
+    return out
+
+
+def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int, cfg: Mapping) -> dict[str, float]:
+    """MPJPE (mm) over the reconstructed frames: all joints (holistic) or the stream's joints (parts).
+
+    ``mpjpe_mm``: root-aligned per frame (pelvis subtracted from both, the
+    MoMask / T2M-GPT convention); ``mpjpe_global_mm``: positions as recovered,
+    including root-trajectory drift.
+    """
+    from party.motion import recover_from_ric
+
+    stream = rec.extra.get("stream", "holistic")
+    scale = float(cfg.get("mpjpe_scale", 1000.0))
+    err_local = err_global = 0.0
+    count = 0
+    for g_full, r_full in zip(gt.feats, rec.feats, strict=True):
+        if stream == "holistic":
+            T = len(r_full)
+            pj = recover_from_ric(torch.from_numpy(r_full), n_joints)
+            gj = recover_from_ric(torch.from_numpy(g_full[:T].astype(np.float32)), n_joints)
+        else:  # stream joints, root first (PartLayout.stream_joints is sorted and holds joint 0)
+            rs, gs = (torch.from_numpy(layout.slice(x, stream).astype(np.float32))
+                      for x in (r_full, g_full[: len(r_full)]))
+            pj, gj = layout.recover_stream_joints(rs, stream), layout.recover_stream_joints(gs, stream)
+        err_global += float(torch.linalg.vector_norm(pj - gj, dim=-1).sum())
+        err_local += float(torch.linalg.vector_norm((pj - pj[..., :1, :]) - (gj - gj[..., :1, :]), dim=-1).sum())
+        count += pj.shape[0] * pj.shape[1]
+    count = max(count, 1)
+    return {"mpjpe_mm": scale * err_local / count, "mpjpe_global_mm": scale * err_global / count}
+
+
+def multimodality(g: GeneratedSource, emb: Embedder, c: Mapping, seed: int) -> dict | None:
+    times = int(c["times"])
+    groups = g.repeats(times)
+    if not groups:
+        return None
+    n_rep = min(len(v) for v in groups.values())
+    ids = sorted(groups)
+    vals = []
+    for ss in np.random.SeedSequence(seed + 1).spawn(int(c["replications"])):
+        rng = np.random.default_rng(ss)
+        pick = rng.choice(len(ids), min(int(c["num_texts"]), len(ids)), replace=False)
+        feats = [f for i in pick for f in groups[ids[i]][:n_rep]]
+        e = emb.motions(feats).reshape(len(pick), n_rep, -1)
+        vals.append({"multimodality": M.multimodality(e, times, rng=rng)})
+    return aggregate(vals)["multimodality"]

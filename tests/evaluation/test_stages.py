@@ -1,0 +1,187 @@
+"""train_evaluator -> evaluate -> calibrate_coherence on a tiny compositional dataset.
+
+The dataset (eval_fixtures.write_dataset) pairs 4 arm actions with 4 leg actions; the
+caption names both, so a working evaluator retrieves captions far above chance.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from eval_fixtures import (FakeTextEncoder, FakeTokenizer, make_cfg, prepare, write_dataset, write_generated,
+                           write_real_tokenizer)
+
+from party.evaluation import metrics as M
+from party.evaluation.checkpoint import load_trained
+from party.evaluation.context import load_context
+from party.evaluation.protocol import Embedder
+from party.evaluation.sources import GroundTruthSource
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """Prepared fixture dataset with holistic and arms evaluators trained by the real stage."""
+    import party.text.encoders as enc
+    from party.stages import train_evaluator
+
+    tmp = tmp_path_factory.mktemp("evalstage")
+    root = write_dataset(tmp / "H3D")
+    cfg = make_cfg(tmp, root)
+    prepare(cfg, root)
+    mp = pytest.MonkeyPatch()
+    mp.setattr(enc, "build_text_encoder", lambda text_cfg: FakeTextEncoder())
+    torch.manual_seed(0)
+    metrics = {}
+    for stream, steps in (("holistic", 120), ("arms", 40)):
+        cfg.evaluator.stream = stream
+        cfg.evaluator.train.max_steps = steps
+        metrics[stream] = train_evaluator.run(cfg)
+    mp.undo()
+    return tmp, root, cfg, metrics
+
+
+def test_trained_evaluator_beats_chance_and_shuffle_drops_it(trained):
+    tmp, _, cfg, metrics = trained
+    for stream in ("holistic", "arms"):
+        out = tmp / "evaluators" / stream
+        assert (out / "finest.tar").exists() and json.loads((out / "metrics.json").read_text())["stream"] == stream
+    gt = metrics["holistic"]["test_gt"]
+    assert gt["top3"] > 0.5 > 3 / 32                      # chance: 3/32 = 0.094
+    ev = load_trained(tmp / "evaluators/holistic/finest.tar")
+    src = GroundTruthSource(load_context(cfg), "test", 196, 4)
+    ms = src.draw(np.random.default_rng(0))
+    emb = Embedder(ev)
+    t, m = emb.texts(ms), emb.motions(ms.feats)
+    rng = np.random.default_rng(1)
+    top1 = np.mean([M.r_precision(t, m, 32, rng=rng)[0] for _ in range(20)])
+    shuffled = np.mean([M.r_precision(t[rng.permutation(len(t))], m, 32, rng=rng)[0] for _ in range(20)])
+    assert top1 > 0.25 and shuffled < 0.1                   # about chance (1/32) once captions are shuffled
+    assert M.fid(m, m) < 1e-6                               # ground truth against itself
+    torch.testing.assert_close(emb.motions(ms.feats[::-1]), m.flip(0))   # cached, order-independent
+
+
+def test_evaluate_stage_all_sources(trained, monkeypatch):
+    import party.tokenizers
+    from party.stages import evaluate
+
+    tmp, _, cfg, _ = trained
+    ctx = load_context(cfg)
+    bank = ctx.bank("train", 4)
+
+    def load_tokenizer(path):
+        idx = torch.as_tensor(ctx.layout.index(Path(path).parent.name))
+        return FakeTokenizer(bank.data[::4][:512, idx], window=4)
+
+    real_load = party.tokenizers.load_tokenizer
+    monkeypatch.setattr(party.tokenizers, "load_tokenizer",
+                        lambda p: real_load(p) if Path(p).name == "model.pt" else load_tokenizer(p))
+    for s in ("holistic", "arms"):
+        (tmp / "tokenizers" / s).mkdir(parents=True, exist_ok=True)
+        (tmp / "tokenizers" / s / "last.ckpt").write_text("fake")
+    write_real_tokenizer(tmp / "tokenizers" / "legs", "legs", ctx)   # the real Tokenizer format, untrained
+    clips = ctx.index.clips("test")
+    gen = tmp / "generated"
+    full = lambda c, r: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
+    write_generated(gen / "copy", clips, full, switches={"pg": True, "ptg": True, "hpf": True})
+    write_generated(gen / "same", clips, lambda c, r: full(clips[0], 0), switches={"pg": False, "ptg": False, "hpf": False})
+    rng = np.random.default_rng(0)
+    write_generated(gen / "noisy", clips[:12], lambda c, r: full(c, r) + rng.normal(0, 0.05, full(c, r).shape), repeats=10)
+    out = evaluate.run(cfg)
+    res = out["results"]
+    assert list(res) == ["ground_truth", "recon_holistic", "recon_arms", "recon_legs", "copy", "noisy", "same"]
+    gt, same = res["ground_truth"]["holistic"], res["same"]["holistic"]
+    assert gt["top1"]["n"] == 3 and gt["top3"]["mean"] > 0.5
+    assert same["diversity"]["mean"] == 0.0 and same["fid"]["mean"] > 10 * res["copy"]["holistic"]["fid"]["mean"]
+    assert same["top3"]["mean"] < 0.3                                      # one motion for every caption
+    assert set(res["recon_arms"]) == {"arms", "reconstruction"}            # part recon: its own evaluator
+    assert set(res["recon_legs"]) == {"reconstruction"}                    # no legs evaluator trained here
+    assert out["efficiency"]["tokenizers"]["legs"]["window"] == 12
+    assert res["recon_holistic"]["reconstruction"]["mpjpe_mm"]["mean"] > 0
+    assert {"tc", "sc"} <= set(res["ground_truth"]["coherence"]) and "coherence" not in res["recon_arms"]
+    assert 0 < res["ground_truth"]["coherence"]["sc"]["mean"] <= 1
+    mm = res["noisy"]["holistic"]["multimodality"]
+    assert mm["n"] == 5 and mm["mean"] > 0 and "multimodality" not in res["copy"]["holistic"]
+    assert out["efficiency"]["tokenizers"]["holistic"]["n"] == 100
+    written = json.loads((tmp / "eval/metrics.json").read_text())
+    assert written["results"]["copy"]["arms"]["top1"]["mean"] == res["copy"]["arms"]["top1"]["mean"]
+    tables = (tmp / "eval/tables.md").read_text()
+    for title in ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Efficiency", "B = 256"):
+        assert title in tables or title == "B = 256"      # B = 256 needs >= 256 clips
+    assert "| copy | ✓ | ✓ | ✓ |" in tables and "| Real motion | Arms |" in tables
+    assert json.loads((tmp / "eval/sc_reference.json").read_text())["part_names"][0] == "left_arm"
+
+
+def test_calibrate_coherence_separates_corruptions(trained):
+    from party.stages import calibrate_coherence
+
+    tmp, _, cfg, _ = trained
+    cfg.eval.calibrate.max_clips = 40
+    cfg.eval.log_mlflow = True                      # the MLflow path once (sqlite under tmp)
+    try:
+        out = calibrate_coherence.run(cfg)
+    finally:
+        cfg.eval.log_mlflow = False
+    import mlflow
+
+    from party.tracking import tracking_uri
+
+    runs = mlflow.MlflowClient(tracking_uri(cfg)).search_runs(
+        [e.experiment_id for e in mlflow.MlflowClient(tracking_uri(cfg)).search_experiments()])
+    assert any(r.data.tags.get("party.stage") == "calibrate_coherence" for r in runs)
+    rows = out["rows"]
+    assert [sum(r["table"] == t for r in rows) for t in ("S3", "S4", "S5")] == [16, 12, 4]
+    default = next(r for r in rows if r["table"] == "S3" and r["params"] == {"sigma": 0.1, "kappa": 5})
+    assert default["freeze"] < default["gt"]
+    assert "S3" in out["recommended"]
+    for tab, params in out["recommended"].items():
+        assert params == max((r for r in rows if r["table"] == tab), key=lambda r: r["separation"])["params"]
+    sc = next(r for r in rows if r["table"] == "S5" and r["params"] == {"beta": 1.5})
+    assert sc["mix"] < sc["gt"] and sc["freeze"] < sc["gt"]
+    assert "Table S3" in (tmp / "calibration/tables.md").read_text()
+
+
+def test_generated_run_errors_name_the_file(trained):
+    from party.evaluation.sources import GeneratedSource
+
+    tmp, _, cfg, _ = trained
+    ctx = load_context(cfg)
+    run = tmp / "bad_runs" / "r1"
+    run.mkdir(parents=True)
+    with pytest.raises(ValueError, match="r1/index.json: cannot read"):
+        GeneratedSource(run, ctx)
+    clip = ctx.index.clips("test")[0]
+    np.save(run / "a.npy", np.zeros((40, 251), np.float32))
+    (run / "index.json").write_text(json.dumps({"samples": [{"clip_id": clip["id"], "caption": "x", "file": "a.npy"}]}))
+    with pytest.raises(ValueError, match=r"a.npy: expected features \(T, 263\)"):
+        GeneratedSource(run, ctx)
+    joints = ctx.store.joints(clip["motion"])[:41]
+    np.save(run / "a.npy", joints)
+    (run / "index.json").write_text(json.dumps({"format": "joints", "samples": [
+        {"clip_id": clip["id"], "caption": clip["captions"][0]["caption"], "file": "a.npy"}]}))
+    g = GeneratedSource(run, ctx)
+    ms = g.draw(np.random.default_rng(0))
+    assert ms.feats[0].shape == (40, 263) and ms.tokens[0] == clip["captions"][0]["tokens"]
+
+
+def test_reconstruction_mpjpe_root_aligned_and_global(trained):
+    from party.evaluation.protocol import reconstruction_metrics
+    from party.evaluation.sources import MotionSet
+
+    _, _, cfg, _ = trained
+    ctx = load_context(cfg)
+    feats = [ctx.store.clip_features(c)[:48] for c in ctx.index.clips("test")[:3]]
+    drift = [f.copy() for f in feats]
+    for f in drift:
+        f[:, 1] += 0.01                      # root x velocity: +1 cm/frame of drift, same pose
+    gt = MotionSet(["a", "b", "c"], [""] * 3, [None] * 3, feats)
+    same = reconstruction_metrics(MotionSet(gt.keys, gt.captions, gt.tokens, feats, {"stream": "holistic"}),
+                                  gt, ctx.layout, ctx.n_joints, {})
+    assert same == {"mpjpe_mm": 0.0, "mpjpe_global_mm": 0.0}
+    moved = reconstruction_metrics(MotionSet(gt.keys, gt.captions, gt.tokens, drift, {"stream": "holistic"}),
+                                   gt, ctx.layout, ctx.n_joints, {})
+    assert moved["mpjpe_mm"] < 1e-3 and moved["mpjpe_global_mm"] > 100       # ~23.5 cm mean drift
+    legs = reconstruction_metrics(MotionSet(gt.keys, gt.captions, gt.tokens, drift, {"stream": "legs"}),
+                                  gt, ctx.layout, ctx.n_joints, {})
+    assert legs["mpjpe_mm"] < 1e-3 and legs["mpjpe_global_mm"] > 100
