@@ -1,0 +1,54 @@
+"""Per-stream tokenizer settings from the ``vqvae`` config group.
+
+``vqvae.model`` holds what every tokenizer shares; ``vqvae.tokenizers.<stream>``
+overrides any of those keys for one stream (window, codebook_size, code_dim, ...)
+and may carry a ``train`` block that overrides ``vqvae.train`` for that stream.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+
+def _plain(x) -> Any:
+    return OmegaConf.to_container(x, resolve=True) if isinstance(x, DictConfig) else x
+
+
+def _merge(base: dict, over: Mapping) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
+def stream_config(vq_cfg, stream: str) -> dict:
+    """``{"model": ..., "train": ..., "loss": ..., "optim": ...}`` for one stream (plain dicts)."""
+    vq = _plain(vq_cfg)
+    toks = vq.get("tokenizers", {})
+    if stream not in toks:
+        raise KeyError(f"vqvae.tokenizers has no entry {stream!r} (have {sorted(toks)})")
+    over = dict(toks[stream] or {})
+    train_over = over.pop("train", {}) or {}
+    return {"model": _merge(vq["model"], over), "train": _merge(vq["train"], train_over),
+            "loss": dict(vq["loss"]), "optim": dict(vq["optim"])}
+
+
+def crop_length(crop: int, window: int) -> int:
+    """Training crop rounded down to a multiple of the window (at least one window)."""
+    return max(window, crop // window * window)
+
+
+# keys that do not change what a step computes: a run may resume across changes to them
+_RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "render_samples", "log_checkpoint",
+                   "num_workers", "threads", "resume", "log_every"}
+
+
+def resume_key(scfg: dict, extra: Mapping[str, Any]) -> str:
+    """Short hash of everything that makes two training runs the same run."""
+    train = {k: v for k, v in scfg["train"].items() if k not in _RESUME_IGNORES}
+    blob = json.dumps({"model": scfg["model"], "loss": scfg["loss"], "optim": scfg["optim"],
+                       "train": train, **extra}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]

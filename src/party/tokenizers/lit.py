@@ -1,0 +1,134 @@
+"""LightningModule around a ``Tokenizer``: losses, schedule, validation metrics.
+
+L_vq = L_rec + lambda_app * L_app (+ lambda_feat * L_feat, off by default):
+- L_rec: L1 between joint positions recovered (``recover_from_ric``, differentiable)
+  from the decoded and from the ground-truth features, both denormalised; for a
+  part stream only that stream's joints (root included);
+- L_app: L2 between encoder output and its stop-gradient code;
+- L_feat: L1 on the normalised features (a switch, not in the paper).
+Validation runs whole clips (bucketed, see ``data.BucketDataset``) and reports
+MPJPE in mm, root-aligned per frame (MoMask's protocol) and global.
+"""
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from party.tokenizers.vqvae import Tokenizer, count_parameters
+
+
+def lr_factor(step: int, optim: dict) -> float:
+    """Two-stage schedule: lr until ``milestone`` iterations, lr_after from then on (+ optional warm-up)."""
+    f = 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
+    warm = int(optim.get("warmup_steps", 0) or 0)
+    return f * min(1.0, (step + 1) / warm) if warm > 0 else f
+
+
+class VQVAELit(L.LightningModule):
+    def __init__(self, tok: Tokenizer, scfg: dict, metrics_cfg: dict | None = None):
+        super().__init__()
+        self.tok = tok
+        self.loss_cfg, self.optim_cfg = scfg["loss"], scfg["optim"]
+        m = metrics_cfg or {}
+        self.unit_scale = float(m.get("unit_scale", 1000.0))
+        self.keep_outputs = False          # tests / extraction checks: keep val codes + recon
+        self.val_outputs: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.val_results: dict[str, float] = {}
+        self._val = None
+
+    @property
+    def model(self):
+        return self.tok.model
+
+    # ------------------------------------------------------------------ losses
+    def _joints(self, x: torch.Tensor) -> torch.Tensor:
+        return self.tok.joints(self.tok.denormalize(x))
+
+    def _losses(self, out: dict) -> dict:
+        m = out["frame_mask"]
+        denom = m.sum().clamp(min=1)
+        j_hat, j_gt = self._joints(out["recon"]), self._joints(out["target"])
+        l_rec = ((j_hat - j_gt).abs().mean((-1, -2)) * m).sum() / denom
+        l_feat = ((out["recon"] - out["target"]).abs().mean(-1) * m).sum() / denom
+        lc = self.loss_cfg
+        loss = l_rec + float(lc["lambda_app"]) * out["loss_app"]
+        if float(lc.get("lambda_feat", 0.0)):
+            loss = loss + float(lc["lambda_feat"]) * l_feat
+        return {"loss": loss, "l_rec": l_rec, "l_app": out["loss_app"], "l_feat": l_feat,
+                "j_hat": j_hat, "j_gt": j_gt}
+
+    def training_step(self, batch, batch_idx):
+        x = batch["x"] if isinstance(batch, dict) else batch
+        out = self.model(x)
+        ls = self._losses(out)
+        q = self.model.quantizer
+        self.log_dict({"train/loss": ls["loss"], "train/l_rec": ls["l_rec"], "train/l_app": ls["l_app"],
+                       "train/l_feat": ls["l_feat"], "train/perplexity": out["perplexity"],
+                       "train/codes_used": float(out["usage"]), "train/resets": float(out["resets"]),
+                       "train/resets_total": float(q.resets_total)},
+                      prog_bar=False, batch_size=len(x))
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=len(x))
+        return ls["loss"]
+
+    # -------------------------------------------------------------- validation
+    def on_validation_epoch_start(self) -> None:
+        K = self.model.quantizer.n_codes
+        self._val = {"err": 0.0, "err_g": 0.0, "rec": 0.0, "frames": 0.0,
+                     "hist": torch.zeros(K, dtype=torch.float64, device=self.device)}
+        self.val_outputs = {}
+
+    def validation_step(self, batch, batch_idx):
+        out = self.model(batch["x"], batch["mask"])
+        ls = self._losses(out)
+        m = out["frame_mask"].float()
+        jh, jg = ls["j_hat"], ls["j_gt"]
+        err_g = (jh - jg).norm(dim=-1).mean(-1)
+        err = ((jh - jh[..., :1, :]) - (jg - jg[..., :1, :])).norm(dim=-1).mean(-1)
+        v = self._val
+        v["err"] += float((err * m).sum())
+        v["err_g"] += float((err_g * m).sum())
+        v["rec"] += float(((jh - jg).abs().mean((-1, -2)) * m).sum())
+        v["frames"] += float(m.sum())
+        idx = out["idx"][out["node_mask"]]
+        v["hist"] += torch.bincount(idx, minlength=len(v["hist"])).to(v["hist"])
+        if self.keep_outputs:
+            for k, key in enumerate(batch["keys"]):
+                n = int(out["node_mask"][k].sum())
+                valid = int(out["frame_mask"][k].sum())
+                self.val_outputs[key] = (out["idx"][k, :n].cpu(), out["recon"][k, :valid].cpu())
+
+    def on_validation_epoch_end(self) -> None:
+        v = self._val
+        red = self.trainer.strategy.reduce if self._trainer is not None else (lambda t, **_: t)
+        tot = red(torch.tensor([v["err"], v["err_g"], v["rec"], v["frames"]], dtype=torch.float64,
+                               device=self.device), reduce_op="sum")
+        hist = red(v["hist"], reduce_op="sum")
+        frames = max(float(tot[3]), 1.0)
+        p = hist / hist.sum().clamp(min=1)
+        res = {"val/mpjpe_mm": float(tot[0]) / frames * self.unit_scale,
+               "val/mpjpe_global_mm": float(tot[1]) / frames * self.unit_scale,
+               "val/l_rec": float(tot[2]) / frames,
+               "val/perplexity": float(torch.exp(-(p * torch.log(p + 1e-12)).sum())),
+               "val/code_usage": float((hist > 0).float().mean()),
+               "val/frames": float(tot[3])}
+        self.val_results = res
+        self.log_dict({k: float(v) for k, v in res.items()}, sync_dist=False)
+
+    # -------------------------------------------------------------- optimiser
+    def configure_optimizers(self):
+        o = self.optim_cfg
+        opt = torch.optim.AdamW(self.parameters(), lr=float(o["lr"]), betas=tuple(o["betas"]),
+                                weight_decay=float(o.get("weight_decay", 0.0)))
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, o))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        exp = self.tok.export()
+        exp.pop("state_dict")
+        checkpoint["party_tokenizer"] = exp
+
+    def on_fit_start(self) -> None:
+        if self.logger is not None:
+            self.logger.log_hyperparams({"n_params": count_parameters(self.model)})
+
+

@@ -1,0 +1,241 @@
+"""The Temporal-aware VQ-VAE (ParTY Sec. 3.1) and its conventional baseline, one code path.
+
+    x (B,T,D) -> Encoder -> [LTE] -> [GTE] -> EMAQuantizer -> Decoder -> x_hat (B,T,D)
+
+``lte.enabled``: frame-level encoder (no temporal downsampling) + LTE pooling of
+w frames; off: strided-conv (or average-pool) encoder down to one feature per w
+frames (T2M-GPT/MoMask). ``gte.enabled``: GCN over the group features.
+Both off = the conventional VQ-VAE of the Tab. 4 / Tab. S12 ablations.
+
+Lengths that are not a multiple of w (``tail``):
+- ``crop`` (default, as the standard HumanML3D loaders): the last T mod w
+  frames are dropped; n = T // w tokens cover frames [0, n*w).
+- ``pad``: the sequence is padded to ceil(T/w)*w by repeating its last frame;
+  padded frames get no LTE weight and no loss; the decoded output is cut back
+  to T frames by the caller (``frame_mask``).
+A batch may carry a ``mask`` (B,T) of valid frames (right padding).
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+from party.tokenizers.encoder import Decoder, Encoder, window_strides
+from party.tokenizers.quantizer import EMAQuantizer
+from party.tokenizers.temporal import GlobalTemporalEnhancement, LocalTemporalEnhancement
+
+
+class VQVAE(nn.Module):
+    def __init__(self, in_dim: int, cfg: Mapping[str, Any]):
+        super().__init__()
+        self.cfg = dict(cfg)
+        self.window = w = int(cfg["window"])
+        self.tail = cfg.get("tail", "crop")
+        if self.tail not in ("crop", "pad"):
+            raise ValueError(f"vqvae tail must be 'crop' or 'pad', got {self.tail!r}")
+        strides = window_strides(w)
+        lte, gte = cfg["lte"], cfg["gte"]
+        code_dim, width = int(cfg["code_dim"]), int(cfg["width"])
+        self.encoder = Encoder(in_dim, width, code_dim, strides, int(cfg["depth"]),
+                               int(cfg["dilation_growth"]), downsample=not lte["enabled"],
+                               pool=cfg.get("baseline_pool", "conv"))
+        self.lte = LocalTemporalEnhancement(code_dim, w, int(lte["hidden"]), int(lte["layers"]),
+                                            bool(lte.get("per_position", False))) \
+            if lte["enabled"] else None
+        self.gte = GlobalTemporalEnhancement(code_dim, int(gte["hidden"]), int(gte["layers"]),
+                                             gte["adjacency"], bool(gte.get("residual", True))) \
+            if gte["enabled"] else None
+        q = cfg["quantizer"]
+        self.quantizer = EMAQuantizer(int(cfg["codebook_size"]), code_dim, float(q["decay"]),
+                                      float(q["reset_threshold"]))
+        self.decoder = Decoder(code_dim, width, in_dim, strides, int(cfg["depth"]),
+                               int(cfg["dilation_growth"]))
+        self.in_dim = in_dim
+
+    # ---------------------------------------------------------------- lengths
+    def n_tokens(self, length: int) -> int:
+        return length // self.window if self.tail == "crop" else -(-length // self.window)
+
+    def _fit_length(self, x: torch.Tensor, mask: torch.Tensor | None):
+        """Crop or pad (B,T,D) to a multiple of w; returns x, frame mask (B,T'), node mask (B,n)."""
+        B, T, _ = x.shape
+        w = self.window
+        lengths = mask.sum(1) if mask is not None else torch.full((B,), T, device=x.device)
+        if self.tail == "crop":
+            lengths = lengths // w * w
+            T2 = T // w * w
+            if T2 == 0:
+                raise ValueError(f"sequence of {T} frames is shorter than the window {w}")
+            x = x[:, :T2]
+        else:
+            T2 = -(-T // w) * w
+            if T2 > T:
+                x = torch.cat([x, x[:, -1:].expand(B, T2 - T, x.shape[2])], 1)
+        frame_mask = torch.arange(T2, device=x.device)[None] < lengths[:, None]
+        if mask is not None and self.tail == "pad":
+            # repeat each sequence's own last valid frame into its padding
+            last = (lengths - 1).clamp(min=0)
+            fill = x[torch.arange(B, device=x.device), last][:, None]
+            x = torch.where(frame_mask[..., None], x, fill)
+        node_mask = frame_mask.reshape(B, T2 // w, w).any(-1)
+        return x, frame_mask, node_mask
+
+    # ---------------------------------------------------------------- pieces
+    def encode_features(self, x: torch.Tensor, frame_mask: torch.Tensor, node_mask: torch.Tensor):
+        """Pre-quantization group features (B, n, code_dim) and LTE weights (or None)."""
+        f = self.encoder(x)
+        alpha = None
+        if self.lte is not None:
+            f, alpha = self.lte(f, frame_mask)
+        if self.gte is not None:
+            f = self.gte(f, node_mask)
+        return f, alpha
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None):
+        """Codes (B, n) long (-1 on padded groups) and the node mask."""
+        x, frame_mask, node_mask = self._fit_length(x, mask)
+        z, _ = self.encode_features(x, frame_mask, node_mask)
+        idx = self.quantizer.nearest(z)
+        return idx.masked_fill(~node_mask, -1), node_mask
+
+    def decode(self, idx: torch.Tensor) -> torch.Tensor:
+        """Codes (B, n) (negative = padding, decoded from a zero vector) -> (B, n*w, D)."""
+        valid = idx >= 0
+        q = self.quantizer.dequantize(idx.clamp(min=0)) * valid[..., None]
+        return self.decoder(q)
+
+    # ---------------------------------------------------------------- forward
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        x, frame_mask, node_mask = self._fit_length(x, mask)
+        z, alpha = self.encode_features(x, frame_mask, node_mask)
+        out = self.quantizer(z[node_mask])
+        idx = torch.full(node_mask.shape, -1, dtype=torch.long, device=x.device)
+        idx[node_mask] = out["idx"]
+        if self.training:
+            q = torch.zeros_like(z)
+            q[node_mask] = out["q"].to(z.dtype)
+            recon = self.decoder(q)
+        else:
+            recon = self.decode(idx)      # eval: exactly what decoding the stored tokens gives
+        return {"recon": recon, "target": x, "frame_mask": frame_mask, "node_mask": node_mask,
+                "idx": idx, "alpha": alpha, "loss_app": out["loss_app"],
+                "perplexity": out["perplexity"], "resets": out["resets"], "usage": out["usage"]}
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+# ====================================================================== tokenizer
+TOKENIZER_FORMAT = "party.tokenizer/1"
+
+
+class Tokenizer(nn.Module):
+    """A VQ-VAE plus what it needs to be used on its own: the stream's normalisation
+    statistics and where its channels/joints sit in the full feature vector.
+
+    ``meta``: stream, feat_dim, n_joints, feat_index (stream channel -> full channel),
+    stream_joints (joint ids its features determine, root first), skeleton, fps.
+    """
+
+    def __init__(self, model: VQVAE, mean, std, meta: dict):
+        super().__init__()
+        self.model = model
+        self.meta = dict(meta)
+        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone())
+        self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32).clone())
+        self.register_buffer("feat_index", torch.as_tensor(meta["feat_index"], dtype=torch.long),
+                             persistent=False)
+
+    @property
+    def window(self) -> int:
+        return self.model.window
+
+    def normalize(self, raw: torch.Tensor) -> torch.Tensor:
+        return (raw - self.mean) / self.std
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.std + self.mean
+
+    def joints(self, raw: torch.Tensor) -> torch.Tensor:
+        """Positions (...,T,len(stream_joints),3) of the stream's joints from raw stream features."""
+        from party.motion.features import recover_from_ric
+        full_dim, nj = int(self.meta["feat_dim"]), int(self.meta["n_joints"])
+        if raw.shape[-1] != full_dim:
+            full = raw.new_zeros(*raw.shape[:-1], full_dim)
+            raw = full.index_copy(full.dim() - 1, self.feat_index.to(raw.device), raw)
+        j = recover_from_ric(raw, nj)
+        if len(self.meta["stream_joints"]) != nj:
+            j = j[..., self.meta["stream_joints"], :]
+        return j
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised stream features (B, T, D) -> codes (B, n) (-1 on padded groups)."""
+        return self.model.encode(x, mask)[0]
+
+    @torch.no_grad()
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """Codes (B, n) -> normalised stream features (B, n*w, D)."""
+        return self.model.decode(codes)
+
+    @torch.no_grad()
+    def tokenize(self, raw) -> torch.Tensor:
+        """Raw (unnormalised) stream features (T, D) -> codes (n,) long."""
+        x = torch.as_tensor(raw, dtype=torch.float32, device=self.mean.device)
+        idx, _ = self.model.encode(self.normalize(x)[None])
+        return idx[0]
+
+    @torch.no_grad()
+    def detokenize(self, codes) -> torch.Tensor:
+        """Codes (n,) -> raw stream features (n*w, D)."""
+        idx = torch.as_tensor(codes, dtype=torch.long, device=self.mean.device)
+        return self.denormalize(self.model.decode(idx[None])[0])
+
+    def export(self) -> dict:
+        return {"format": TOKENIZER_FORMAT, "in_dim": self.model.in_dim, "config": self.model.cfg,
+                "meta": self.meta, "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+
+    @classmethod
+    def from_export(cls, obj: dict, source: str = "<memory>") -> "Tokenizer":
+        if obj.get("format") != TOKENIZER_FORMAT:
+            raise ValueError(f"{source}: not a party tokenizer (format {obj.get('format')!r}, "
+                             f"expected {TOKENIZER_FORMAT!r})")
+        sd = obj["state_dict"]
+        tok = cls(VQVAE(int(obj["in_dim"]), obj["config"]), sd["mean"], sd["std"], obj["meta"])
+        tok.load_state_dict(sd)
+        return tok.eval()
+
+
+def save_tokenizer(tok: Tokenizer, path) -> None:
+    """Write ``model.pt`` (weights + config + meta; loadable without Lightning) atomically."""
+    import io as _io
+
+    from party.io import write_bytes
+    buf = _io.BytesIO()
+    torch.save(tok.export(), buf)
+    write_bytes(path, buf.getvalue())
+
+
+def load_tokenizer(path, map_location="cpu") -> Tokenizer:
+    """Load a tokenizer from its folder (``model.pt``), a ``model.pt`` or a Lightning ``.ckpt``."""
+    from pathlib import Path
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.pt"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: tokenizer not found; run `party train_vqvae`")
+    try:
+        obj = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:  # noqa: BLE001 - name the file whatever torch raised
+        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
+    if isinstance(obj, dict) and "party_tokenizer" in obj:      # Lightning checkpoint
+        exp = dict(obj["party_tokenizer"])
+        exp["state_dict"] = {k[len("tok."):]: v for k, v in obj["state_dict"].items() if k.startswith("tok.")}
+        obj = exp
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: not a party tokenizer file")
+    return Tokenizer.from_export(obj, str(path))

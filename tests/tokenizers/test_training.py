@@ -1,0 +1,172 @@
+"""Training stage on a tiny dataset: export, reload, resume, extraction, ablation runner."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from party.stages import extract_tokens, vq_ablation
+from party.stages.train_vqvae import train_tokenizer
+from party.tokenizers.config import stream_config
+from party.tokenizers.data import (BucketDataset, bucket_loader, decode_sequences, eval_sequences,
+                                   load_stream_data)
+from party.tokenizers.lit import VQVAELit
+from party.tokenizers.tokens import TokenStore
+from party.tokenizers.vqvae import load_tokenizer
+
+from conftest import tiny_cfg
+
+
+class SimulatedKill(Exception):
+    pass
+
+
+class StepRecorder(L.Callback):
+    """Records the global step at each training batch; optionally dies after ``crash_at`` steps."""
+
+    def __init__(self, crash_at: int | None = None):
+        self.steps: list[int] = []
+        self.crash_at = crash_at
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.steps.append(trainer.global_step)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if self.crash_at is not None and trainer.global_step >= self.crash_at:
+            raise SimulatedKill(f"killed after step {trainer.global_step}")
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_prepared, tmp_path_factory):
+    """holistic, arms, legs tokenizers trained for 4 steps each."""
+    tmp = tmp_path_factory.mktemp("trained")
+    cfg = tiny_cfg(tmp, tiny_prepared)
+    metrics = {s: train_tokenizer(cfg, s, tmp / "tokenizers" / s) for s in ("holistic", "arms", "legs")}
+    return cfg, tmp, metrics
+
+
+def test_export_layout_and_metrics(trained):
+    cfg, tmp, metrics = trained
+    for s in ("holistic", "arms", "legs"):
+        d = tmp / "tokenizers" / s
+        assert {p.name for p in d.iterdir()} == {"model.pt", "last.ckpt", "config.json", "metrics.json"}
+        m = json.loads((d / "metrics.json").read_text())
+        assert m["step"] == 4 and m["val/mpjpe_mm"] > 0 and 0 < m["val/code_usage"] <= 1
+        assert json.loads((d / "config.json").read_text())["stream"] == s
+    tok = load_tokenizer(tmp / "tokenizers" / "arms")
+    assert tok.window == 6 and tok.meta["stream"] == "arms" and 0 in tok.meta["stream_joints"]
+
+
+def test_reload_gives_identical_tokens(trained):
+    cfg, tmp, _ = trained
+    data = load_stream_data(cfg, "holistic")
+    seqs, _ = eval_sequences(data, "val")
+    a = load_tokenizer(tmp / "tokenizers" / "holistic")                  # model.pt
+    b = load_tokenizer(tmp / "tokenizers" / "holistic" / "last.ckpt")    # Lightning checkpoint
+    for k, v in a.state_dict().items():
+        assert torch.equal(v, b.state_dict()[k]), k
+    for x in seqs:
+        ca, cb = a.encode(x[None]), b.encode(x[None])
+        assert torch.equal(ca, cb)
+        assert torch.equal(a.decode(ca), b.decode(cb))
+    raw = data.store.features(data.index.clips("val")[0]["motion"])
+    assert torch.equal(a.tokenize(raw), b.tokenize(raw))
+    assert a.detokenize(a.tokenize(raw)).shape == (len(raw) // 4 * 4, 263)
+
+
+def test_tokens_decode_to_what_validation_saw(trained):
+    cfg, tmp, _ = trained
+    cfg = cfg.copy()
+    cfg.vqvae.tokens_dir = str(tmp / "tokens")
+    summary = extract_tokens.run(cfg)
+    assert set(summary) == {"holistic", "arms", "legs"}
+    sha = {s: TokenStore.open(tmp / "tokens" / s).meta["sha256"] for s in summary}
+    extract_tokens.run(cfg)                                                # deterministic
+    assert {s: TokenStore.open(tmp / "tokens" / s).meta["sha256"] for s in summary} == sha
+    for stream in ("holistic", "legs"):
+        store = TokenStore.open(tmp / "tokens" / stream)
+        tok = load_tokenizer(tmp / "tokenizers" / stream)
+        data = load_stream_data(cfg, stream)
+        clip_ids = [c["id"] for c in data.index.clips(None)]
+        assert set(clip_ids) <= set(store.names())                         # mirrors + timed clips
+        assert any(k.startswith("M") for k in store.names()) and "000000#4-28" in store
+        assert len(store.get("000000#4-28")) == 24 // tok.window
+        lit = VQVAELit(tok, stream_config(cfg.vqvae, stream))
+        lit.keep_outputs = True
+        seqs, keys = eval_sequences(data, "val")
+        loader = bucket_loader(BucketDataset(seqs, keys, tok.window, "crop", int(cfg.vqvae.eval.batch_size)))
+        L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False,
+                  enable_model_summary=False).validate(lit, loader, verbose=False)
+        codes = [store.get(k) for k in lit.val_outputs]
+        for k, c in zip(lit.val_outputs, codes):
+            assert np.array_equal(c, lit.val_outputs[k][0].numpy()), k
+        decoded = decode_sequences(tok.model, codes, int(cfg.vqvae.eval.batch_size))
+        for k, rec in zip(lit.val_outputs, decoded):
+            assert torch.equal(rec, lit.val_outputs[k][1]), k                # bit for bit
+
+
+def test_token_store_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="index.json"):
+        TokenStore.open(tmp_path)
+
+
+def test_resume_after_kill_continues_at_saved_step(tiny_prepared, tmp_path):
+    cfg = tiny_cfg(tmp_path, tiny_prepared, **{"vqvae.train.max_steps": 6, "vqvae.train.ckpt_every": 2})
+    out = tmp_path / "tokenizers" / "holistic"
+    first = StepRecorder(crash_at=3)
+    with pytest.raises(SimulatedKill):
+        train_tokenizer(cfg, "holistic", out, callbacks=[first])
+    assert first.steps == [0, 1, 2] and not out.exists()                   # nothing exported
+    ckpts = list((tmp_path / "ckpt" / "holistic").glob("*/last.ckpt"))
+    assert len(ckpts) == 1 and torch.load(ckpts[0], weights_only=False)["global_step"] == 2
+    second = StepRecorder()
+    m = train_tokenizer(cfg, "holistic", out, callbacks=[second])
+    assert second.steps == [2, 3, 4, 5] and m["step"] == 6
+    # DVC removes outputs before rerunning a stage: a finished run re-exports without training
+    shutil.rmtree(out)
+    third = StepRecorder()
+    m3 = train_tokenizer(cfg, "holistic", out, callbacks=[third])
+    assert third.steps == [] and m3["step"] == 6 and (out / "model.pt").exists()
+    assert m3["val/mpjpe_mm"] == pytest.approx(m["val/mpjpe_mm"])
+    # raising max_steps continues the same run; changing the model starts a new one
+    fourth = StepRecorder()
+    cfg.vqvae.train.max_steps = 7
+    assert train_tokenizer(cfg, "holistic", out, callbacks=[fourth])["step"] == 7 and fourth.steps == [6]
+    cfg.vqvae.model.width = 12
+    fifth = StepRecorder()
+    train_tokenizer(cfg, "holistic", out, callbacks=[fifth])
+    assert fifth.steps[0] == 0
+
+
+def test_ablation_runner_table(tiny_prepared, tmp_path):
+    sweep = tmp_path / "mini.yaml"
+    sweep.write_text("name: mini\nstream: holistic\nfixed: [vqvae.train.max_steps=2]\naxes:\n"
+                     "  model:\n    baseline: [vqvae.model.lte.enabled=false, vqvae.model.gte.enabled=false]\n"
+                     "    ours: [vqvae.model.lte.enabled=true, vqvae.model.gte.enabled=true]\n")
+    cfg = tiny_cfg(tmp_path, tiny_prepared, **{"vqvae.ablation.sweep": str(sweep),
+                                                "vqvae.ablation.out_dir": str(tmp_path / "abl")})
+    rows = vq_ablation.run(cfg)
+    assert [r["point"] for r in rows] == ["baseline", "ours"]
+    assert [(r["lte"], r["gte"]) for r in rows] == [(False, False), (True, True)]
+    assert rows[0]["params"] < rows[1]["params"] and all(r["steps"] == 2 for r in rows)
+    md = (tmp_path / "abl" / "mini" / "table.md").read_text()
+    assert "| baseline |" in md and "dvc exp run --queue train_vqvae@holistic" in md
+    assert (tmp_path / "abl" / "mini" / "table.csv").read_text().count("\n") == 3
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("stream: holistic\naxes: {a: {x: [vqvae.model.nope=1]}}\n")
+    cfg.vqvae.ablation.sweep = str(bad)
+    with pytest.raises(KeyError, match="nope"):
+        vq_ablation.run(cfg)
+
+
+def test_sweeps_in_conf_expand():
+    conf = Path(__file__).resolve().parents[2] / "conf" / "sweep"
+    tab4 = vq_ablation.expand(vq_ablation.load_sweep("vq_tab4", conf))
+    assert len(tab4) == 6 and tab4[0]["label"] == "w4-baseline"
+    s12 = vq_ablation.expand(vq_ablation.load_sweep("vq_s12", conf))
+    assert len(s12) == 4 and all("vqvae.tokenizers.holistic.window=8" in p["overrides"] for p in s12)
