@@ -255,3 +255,18 @@ def test_review_notebook_runs(store, tmp_path):
                        capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert run.info.run_id in r.stdout and "samples/a.gif" in r.stdout
+
+
+def test_runs_do_not_export_the_store_to_later_runs(store, tmp_path):
+    """mlflow.set_tracking_uri exports $MLFLOW_TRACKING_URI; a second stage with another
+    store (in this process or a child) must not log into the first one."""
+    import os
+    first = make_cfg(store)
+    with tracking.start_run(first, "prepare"):
+        pass
+    assert "MLFLOW_TRACKING_URI" not in os.environ
+    other = make_cfg(tmp_path / "other")
+    assert tracking.tracking_uri(other) != tracking.tracking_uri(first)
+    with tracking.start_run(other, "evaluate", tags={"purpose": "second-store"}):
+        pass
+    assert (tmp_path / "other" / "mlflow.db").exists()

@@ -64,6 +64,22 @@ def tracking_dir(cfg) -> Path:
     return d if d.is_absolute() else project_root() / d
 
 
+def _set_tracking_uri(mlflow, uri: str) -> None:
+    """Point this process's MLflow at ``uri`` without exporting it.
+
+    ``mlflow.set_tracking_uri`` also writes ``$MLFLOW_TRACKING_URI`` (for subprocesses),
+    which ``tracking_uri`` would then take as the user's choice: a later stage in this
+    process, or any child process, would log into the first store. Keep the
+    environment as the user left it.
+    """
+    before = os.environ.get("MLFLOW_TRACKING_URI")
+    mlflow.set_tracking_uri(uri)
+    if before is None:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+    else:
+        os.environ["MLFLOW_TRACKING_URI"] = before
+
+
 def tracking_uri(cfg) -> str:
     """``$MLFLOW_TRACKING_URI`` > ``tracking.uri`` > ``sqlite:///<abs dir>/mlflow.db``."""
     env = os.environ.get("MLFLOW_TRACKING_URI")
@@ -295,7 +311,7 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     import mlflow
 
     uri = tracking_uri(cfg)
-    mlflow.set_tracking_uri(uri)
+    _set_tracking_uri(mlflow, uri)
     exp_id = _experiment_id(t.get("experiment") or DEFAULT_EXPERIMENT, uri)
     mlflow.set_experiment(experiment_id=exp_id)
 
