@@ -110,6 +110,26 @@ def test_tokens_decode_to_what_validation_saw(trained):
             assert torch.equal(rec, lit.val_outputs[k][1]), k                # bit for bit
 
 
+def test_validation_metrics_ignore_filler_rows(trained):
+    """Short batches are padded to a fixed shape with copies of their first sequence;
+    those copies must not count: the metrics cannot depend on the batch size."""
+    cfg, tmp, _ = trained
+    tok = load_tokenizer(tmp / "tokenizers" / "holistic")
+    data = load_stream_data(cfg, "holistic")
+    seqs, keys = eval_sequences(data, "val")
+    res = []
+    for bs in (2, 5, 64):
+        lit = VQVAELit(tok, stream_config(cfg.vqvae, "holistic"))
+        L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False
+                  ).validate(lit, bucket_loader(BucketDataset(seqs, keys, tok.window, "crop", bs)), verbose=False)
+        res.append(lit.val_results)
+    frames = sum(len(s) // tok.window * tok.window for s in seqs)
+    for r in res:
+        assert r["val/frames"] == frames
+        assert r["val/mpjpe_mm"] == pytest.approx(res[0]["val/mpjpe_mm"], rel=1e-5)
+        assert r["val/code_usage"] == res[0]["val/code_usage"]
+
+
 def test_token_store_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="index.json"):
         TokenStore.open(tmp_path)
