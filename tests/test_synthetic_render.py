@@ -132,7 +132,9 @@ def _colour_change(frames: list[np.ndarray], hex_color: str) -> int:
 @pytest.mark.parametrize("side", ["left", "right"])
 def test_rendered_moving_side_has_its_colour(side):
     """Waving with one hand: the pixels of that side's colour change the most."""
-    _, j = motion("arms", "wave", side)
+    spec, _ = motion("arms", "wave", side)
+    body = OmegaConf.merge(SYN.body, {"balance_gain": 0.0})   # legs still: only the colours vary
+    j = synthesize(spec, body, FPS)
     frames = list(render_frames([j], max_frames=16, panel_px=240))
     red, blue = _colour_change(frames, LEFT_COLOR), _colour_change(frames, RIGHT_COLOR)
     moving, still = (red, blue) if side == "left" else (blue, red)

@@ -209,20 +209,12 @@ def synthesize_full(spec: MotionSpec, body_cfg, fps: float) -> tuple[np.ndarray,
     else:
         spine_R = legs_spine
 
-    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
-    local[:, 0] = rot_y(yaw)
-    for j in (J["spine1"], J["spine2"], J["spine3"]):
-        local[:, j] = spine_R
-    local[:, J["neck"]] = rot_x(legs["neck_bend"] + arms_glob["neck_bend"])
-    for side in "lr":
-        R_hip, R_knee, R_ankle, flex, knee, abd = legs_R[side]
-        local[:, J[f"{side}_hip"]] = R_hip
-        local[:, J[f"{side}_knee"]] = R_knee
-        local[:, J[f"{side}_ankle"]] = R_ankle
-        d, tw, el = arms_pose[side]
-        local[:, J[f"{side}_shoulder"]] = arm_rotation(d, np.clip(tw, *lim["arm_twist"]))
-        local[:, J[f"{side}_elbow"]] = rot_x(-np.clip(el, *lim["elbow"]))
+    gain = float(body_cfg.get("balance_gain", 0.0) or 0.0)
+    if gain:
+        legs_R = _balance(legs, arms_pose, arms_glob, spine_R, body, gain)
 
+    local = _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim)
+    local[:, 0] = rot_y(yaw)
     root = np.zeros((T, 3))
     root[:, 1] = legs["pelvis_h"]
     P, glob = forward_kinematics(local, body.offsets, root)
@@ -234,6 +226,55 @@ def synthesize_full(spec: MotionSpec, body_cfg, fps: float) -> tuple[np.ndarray,
     info = {"contact": contact, "stance": stance, "yaw": yaw, "local": local, "global": glob,
             "legs": legs, "arms": arms_pose, "spine_bend": bend, "spine_twist": twist}
     return joints, info
+
+
+def _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim) -> np.ndarray:
+    """Local rotations (T, 22, 3, 3) of every joint; the root's is the identity (heading frame)."""
+    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
+    for j in (J["spine1"], J["spine2"], J["spine3"]):
+        local[:, j] = spine_R
+    local[:, J["neck"]] = rot_x(legs["neck_bend"] + arms_glob["neck_bend"])
+    for side in "lr":
+        R_hip, R_knee, R_ankle, flex, knee, abd = legs_R[side]
+        local[:, J[f"{side}_hip"]] = R_hip
+        local[:, J[f"{side}_knee"]] = R_knee
+        local[:, J[f"{side}_ankle"]] = R_ankle
+        d, tw, el = arms_pose[side]
+        local[:, J[f"{side}_shoulder"]] = arm_rotation(d, np.clip(tw, *lim["arm_twist"]))
+        local[:, J[f"{side}_elbow"]] = rot_x(-np.clip(el, *lim["elbow"]))
+    return local
+
+
+_ARM_MASS = ("l_elbow", "l_wrist", "r_elbow", "r_wrist")
+
+
+def _balance(legs: dict, arms_pose, arms_glob, spine_R, body: Body, gain: float):
+    """Whole-body balance: the pelvis moves against the arms (``synthetic.body.balance_gain``).
+
+    Moving the arms moves the body's centre of mass; standing people keep it over their
+    feet by shifting the hips the other way. The pelvis is shifted horizontally by
+    ``-gain`` times the displacement of the arms' distal joints (elbows, wrists) from
+    their rest position, in the heading frame, by moving the foot targets the opposite
+    way in the pelvis frame: planted feet stay where they are, hips and knees follow,
+    and the pelvis never rises above what the legs reach. Returns the new leg rotations
+    (``legs`` is updated in place).
+    """
+    T = len(spine_R)
+    lim = body.limits
+    legs_R = legs_mod.leg_rotations(legs, legs["pelvis_h"], body)
+    local = _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim)
+    P, _ = forward_kinematics(local, body.offsets)
+    ids = [J[n] for n in _ARM_MASS]
+    rest = body.rest_positions()
+    c_rest = (rest[ids] - rest[0]).mean(0)
+    shift = -gain * (P[:, ids].mean(1) - c_rest)                       # (T, 3), pelvis-relative
+    for side in "lr":
+        f = legs[f"foot_{side}"].copy()
+        f[:, 0] -= shift[:, 0]
+        f[:, 2] -= shift[:, 2]
+        legs[f"foot_{side}"] = f
+    legs["pelvis_h"] = legs_mod.resolve_pelvis(legs, body)
+    return legs_mod.leg_rotations(legs, legs["pelvis_h"], body)
 
 
 def synthesize(spec: MotionSpec, body_cfg, fps: float) -> np.ndarray:
