@@ -185,3 +185,32 @@ def test_reconstruction_mpjpe_root_aligned_and_global(trained):
     legs = reconstruction_metrics(MotionSet(gt.keys, gt.captions, gt.tokens, drift, {"stream": "legs"}),
                                   gt, ctx.layout, ctx.n_joints, {})
     assert legs["mpjpe_mm"] < 1e-3 and legs["mpjpe_global_mm"] > 100
+
+
+def test_ablation_table_has_reconstruction_fid(trained, tmp_path):
+    """vq_ablation scores every point's reconstructions with the trained evaluator."""
+    from omegaconf import OmegaConf
+
+    from party.stages import vq_ablation
+
+    _, _, cfg, _ = trained
+    cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    small = {"vqvae.out_dir": tmp_path / "tok", "vqvae.resume_dir": tmp_path / "ckpt",
+             "vqvae.ablation.out_dir": tmp_path / "abl", "vqvae.ablation.fid_replications": 2,
+             "vqvae.model.width": 16, "vqvae.model.depth": 1, "vqvae.model.code_dim": 8,
+             "vqvae.model.lte.hidden": 8, "vqvae.model.gte.hidden": 8,
+             "vqvae.tokenizers.holistic.codebook_size": 16, "vqvae.tokenizers.holistic.code_dim": 8,
+             "vqvae.tokenizers.holistic.window": 4, "vqvae.train.batch_size": 4, "vqvae.train.crop": 16,
+             "vqvae.train.val_every": 2, "vqvae.train.render_samples": 0, "vqvae.train.threads": 1,
+             "trainer.num_workers": 0, "tracking.enabled": False}
+    cfg.merge_with(OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
+    sweep = tmp_path / "mini.yaml"
+    sweep.write_text("name: mini\nstream: holistic\nfixed: [vqvae.train.max_steps=2]\naxes:\n"
+                     "  model:\n    baseline: [vqvae.model.lte.enabled=false, vqvae.model.gte.enabled=false]\n"
+                     "    ours: [vqvae.model.lte.enabled=true]\n")
+    cfg.vqvae.ablation.sweep = str(sweep)
+    rows = vq_ablation.run(cfg)
+    assert all(np.isfinite(r["recon_fid"]) and r["recon_fid"] > 0 and r["recon_fid_ci95"] >= 0 for r in rows)
+    assert "recon_fid" in (tmp_path / "abl/mini/table.md").read_text()
+    cfg.vqvae.ablation.fid = False
+    assert all("recon_fid" not in r for r in vq_ablation.run(cfg))

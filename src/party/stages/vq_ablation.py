@@ -15,6 +15,13 @@ its overrides, trained by ``train_vqvae.train_tokenizer`` into
 under one parent run. Points resume like ``train_vqvae`` (rerunning a sweep
 skips finished points). The table goes to ``<out_dir>/<name>/table.{md,csv}``
 and to the parent run, with the equivalent queued-DVC-experiment commands.
+
+Reconstruction FID: when the stream's evaluator exists
+(``<evaluator.out_dir>/<stream>/finest.tar``, or the reference evaluator for
+holistic) and ``vqvae.ablation.fid`` is on, every point's reconstructions of
+``eval.split`` are scored with the ``evaluate`` protocol
+(``vqvae.ablation.fid_replications`` replications, mean ± 95% CI); without an
+evaluator the FID columns stay empty.
 """
 from __future__ import annotations
 
@@ -83,8 +90,40 @@ def dvc_commands(spec: dict, points: list[dict]) -> list[str]:
             + " ".join(f"-S '{o}'" for o in p["overrides"]) for p in points]
 
 
-COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_mm",
-           "perplexity", "code_usage", "steps"]
+COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_mm", "recon_fid",
+           "recon_fid_ci95", "perplexity", "code_usage", "steps"]
+
+
+def reconstruction_fid(cfg, tok_dir: Path, stream: str) -> dict:
+    """FID (mean, ci95) of ``tok_dir``'s reconstructions of ``eval.split`` under the stream's
+    evaluator, with the ``evaluate`` stage's protocol; {} when there is no evaluator."""
+    from party.evaluation.context import load_context, resolve_accelerator
+    from party.evaluation.protocol import Embedder, run_protocol
+    from party.evaluation.sources import GroundTruthSource, load_tokenizer_source
+    from party.stages.evaluate import load_evaluators
+
+    ab = cfg.vqvae.ablation
+    if not ab.get("fid", True) or "evaluator" not in cfg or "eval" not in cfg:
+        return {}
+    ctx = load_context(cfg)
+    device = resolve_accelerator(str(cfg.eval.device))
+    try:
+        ev = load_evaluators(cfg, ctx, device).get(stream)
+    except FileNotFoundError:
+        ev = None
+    if ev is None:
+        log.info("no %s evaluator under %s: reconstruction FID skipped", stream, cfg.evaluator.out_dir)
+        return {}
+    ec = cfg.eval
+    protocol = OmegaConf.to_container(ec, resolve=True)
+    protocol.update(replications=int(ab.get("fid_replications", 5)), coherence={"enabled": False},
+                    sources={"ground_truth": False})
+    gt = GroundTruthSource(ctx, str(ec.split), int(ec.max_motion_len), int(ec.unit_length))
+    src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device)
+    res = run_protocol(protocol, gt, {stream: Embedder(ev, int(ec.embed_batch_size))}, {stream: src}, [],
+                       None, None, ctx.n_joints, ctx.layout, progress=False)
+    fid = res[f"recon_{stream}"][stream]["fid"]
+    return {"recon_fid": round(float(fid["mean"]), 4), "recon_fid_ci95": round(float(fid["ci95"]), 4)}
 
 
 def tables(rows: list[dict], spec: dict, points: list[dict]) -> tuple[str, str]:
@@ -93,9 +132,11 @@ def tables(rows: list[dict], spec: dict, points: list[dict]) -> tuple[str, str]:
     w.writeheader()
     w.writerows(rows)
     head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
-    body = "".join("| " + " | ".join(str(r[c]) for c in COLUMNS) + " |\n" for r in rows)
+    body = "".join("| " + " | ".join(str(r.get(c, "")) for c in COLUMNS) + " |\n" for r in rows)
     md = (f"# {spec['name']}\n\n{spec.get('description', '')}\n\n{head}{body}\n"
-          "MPJPE: validation set, mm, root-aligned per frame (global: without alignment).\n\n"
+          "MPJPE: validation set, mm, root-aligned per frame (global: without alignment).\n"
+          "Reconstruction FID: the evaluate protocol on `eval.split` with the stream's evaluator "
+          "(empty: no evaluator trained).\n\n"
           "Same grid as queued DVC experiments (then `dvc queue start -j 1`):\n\n```\n"
           + "\n".join(dvc_commands(spec, points)) + "\n```\n")
     return md, buf.getvalue()
@@ -127,10 +168,12 @@ def run(cfg) -> list[dict]:
                          "params": int(m["n_params"]),
                          "mpjpe_mm": round(m["val/mpjpe_mm"], 2),
                          "mpjpe_global_mm": round(m["val/mpjpe_global_mm"], 2),
+                         **reconstruction_fid(pcfg, out / "points" / p["label"], spec["stream"]),
                          "perplexity": round(m["val/perplexity"], 1),
                          "code_usage": round(m["val/code_usage"], 3), "steps": m["step"]})
             tracking.log_metrics({f"{p['label']}.mpjpe_mm": m["val/mpjpe_mm"],
-                                  f"{p['label']}.params": m["n_params"]})
+                                  f"{p['label']}.params": m["n_params"]}
+                                 | ({f"{p['label']}.recon_fid": rows[-1]["recon_fid"]} if "recon_fid" in rows[-1] else {}))
         md, csv_text = tables(rows, spec, points)
         write_text(out / "table.md", md)
         write_text(out / "table.csv", csv_text)
