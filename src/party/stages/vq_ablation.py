@@ -107,8 +107,9 @@ def reconstruction_fid(cfg, tok_dir: Path, stream: str) -> dict:
         return {}
     ctx = load_context(cfg)
     device = resolve_accelerator(str(cfg.eval.device))
+    only = OmegaConf.merge(cfg, {"evaluator": {"streams": [stream]}})      # load this stream's alone
     try:
-        ev = load_evaluators(cfg, ctx, device).get(stream)
+        ev = load_evaluators(only, ctx, device).get(stream)
     except FileNotFoundError:
         ev = None
     if ev is None:
