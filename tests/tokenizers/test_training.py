@@ -19,7 +19,7 @@ from party.tokenizers.lit import VQVAELit
 from party.tokenizers.tokens import TokenStore
 from party.tokenizers.vqvae import load_tokenizer
 
-from conftest import tiny_cfg
+from conftest import tiny_cfg, write_tiny_dataset
 
 
 class SimulatedKill(Exception):
@@ -161,6 +161,23 @@ def test_resume_after_kill_continues_at_saved_step(tiny_prepared, tmp_path):
     fifth = StepRecorder()
     train_tokenizer(cfg, "holistic", out, callbacks=[fifth])
     assert fifth.steps[0] == 0
+
+
+def test_regenerated_features_do_not_resume_the_old_run(tmp_path):
+    """Same clip names (index.json), new features: training starts over, and the exported
+    tokenizer carries the new normalisation."""
+    prepared = write_tiny_dataset(tmp_path / "ds")
+    cfg = tiny_cfg(tmp_path, prepared, **{"vqvae.train.max_steps": 2})
+    out = tmp_path / "tokenizers" / "holistic"
+    assert train_tokenizer(cfg, "holistic", out)["step"] == 2
+    root = Path(json.loads((prepared / "index.json").read_text())["root"])
+    for name in ("Mean.npy", "Std.npy"):                        # what regenerating the data changes
+        np.save(root / name, np.load(root / name) * 1.01)
+    shutil.rmtree(out)
+    again = StepRecorder()
+    train_tokenizer(cfg, "holistic", out, callbacks=[again])
+    assert again.steps[0] == 0
+    assert torch.allclose(load_tokenizer(out).mean, torch.as_tensor(np.load(root / "Mean.npy")))
 
 
 def test_ablation_runner_table(tiny_prepared, tmp_path):

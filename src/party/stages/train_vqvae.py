@@ -112,8 +112,12 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run_name: str | None 
     val_seqs, val_keys = eval_sequences(data, ev.split, ev.get("max_clips"))
     val_loader = bucket_loader(BucketDataset(val_seqs, val_keys, model.window, model.tail,
                                              int(ev.batch_size)))
+    # the data's identity: clip list (index.json) and the features' statistics (regenerated
+    # features with the same clip names must not resume a run trained on the old ones)
+    root = Path(data.index.root)
     key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim,
-                            "index": _file_sha(data.index.path)})
+                            "index": _file_sha(data.index.path),
+                            "norm": [_file_sha(root / f) for f in ("Mean.npy", "Std.npy")]})
     rdir = Path(cfg.vqvae.resume_dir) / stream / key
     ckpt = rdir / "last.ckpt"
     resume = ckpt if (t.get("resume", True) and ckpt.exists()) else None
