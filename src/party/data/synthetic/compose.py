@@ -211,7 +211,7 @@ def synthesize_full(spec: MotionSpec, body_cfg, fps: float) -> tuple[np.ndarray,
 
     gain = float(body_cfg.get("balance_gain", 0.0) or 0.0)
     if gain:
-        legs_R = _balance(legs, arms_pose, arms_glob, spine_R, body, gain)
+        legs_R = _balance(legs, legs_R, arms_pose, arms_glob, spine_R, body, gain)
 
     local = _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim)
     local[:, 0] = rot_y(yaw)
@@ -248,7 +248,7 @@ def _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim) -> np.n
 _ARM_MASS = ("l_elbow", "l_wrist", "r_elbow", "r_wrist")
 
 
-def _balance(legs: dict, arms_pose, arms_glob, spine_R, body: Body, gain: float):
+def _balance(legs: dict, legs_R: dict, arms_pose, arms_glob, spine_R, body: Body, gain: float):
     """Whole-body balance: the pelvis moves against the arms (``synthetic.body.balance_gain``).
 
     Moving the arms moves the body's centre of mass; standing people keep it over their
@@ -257,12 +257,9 @@ def _balance(legs: dict, arms_pose, arms_glob, spine_R, body: Body, gain: float)
     their rest position, in the heading frame, by moving the foot targets the opposite
     way in the pelvis frame: planted feet stay where they are, hips and knees follow,
     and the pelvis never rises above what the legs reach. Returns the new leg rotations
-    (``legs`` is updated in place).
+    (``legs`` is updated in place; ``legs_R`` are its rotations before the shift).
     """
-    T = len(spine_R)
-    lim = body.limits
-    legs_R = legs_mod.leg_rotations(legs, legs["pelvis_h"], body)
-    local = _pose_rotations(T, legs, legs_R, spine_R, arms_pose, arms_glob, lim)
+    local = _pose_rotations(len(spine_R), legs, legs_R, spine_R, arms_pose, arms_glob, body.limits)
     P, _ = forward_kinematics(local, body.offsets)
     ids = [J[n] for n in _ARM_MASS]
     rest = body.rest_positions()
