@@ -28,6 +28,7 @@ from __future__ import annotations
 import csv
 import io
 import itertools
+import json
 import logging
 from pathlib import Path
 
@@ -94,9 +95,11 @@ COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_
            "recon_fid_ci95", "perplexity", "code_usage", "steps"]
 
 
-def reconstruction_fid(cfg, tok_dir: Path, stream: str) -> dict:
-    """FID (mean, ci95) of ``tok_dir``'s reconstructions of ``eval.split`` under the stream's
-    evaluator, with the ``evaluate`` stage's protocol; {} when there is no evaluator."""
+def reconstruction_fid_scorer(cfg, stream: str):
+    """A function ``tok_dir -> {recon_fid, recon_fid_ci95}`` scoring a tokenizer's reconstructions
+    of ``eval.split`` under the stream's evaluator with the ``evaluate`` stage's protocol, or
+    None when FID is off or no evaluator exists. ``run`` builds one per distinct evaluation
+    setup, so data, evaluator and ground truth load once per sweep, not once per point."""
     from party.evaluation.context import load_context, resolve_accelerator
     from party.evaluation.protocol import Embedder, run_protocol
     from party.evaluation.sources import GroundTruthSource, load_tokenizer_source
@@ -104,7 +107,7 @@ def reconstruction_fid(cfg, tok_dir: Path, stream: str) -> dict:
 
     ab = cfg.vqvae.ablation
     if not ab.get("fid", True) or "evaluator" not in cfg or "eval" not in cfg:
-        return {}
+        return None
     ctx = load_context(cfg)
     device = resolve_accelerator(str(cfg.eval.device))
     only = OmegaConf.merge(cfg, {"evaluator": {"streams": [stream]}})      # load this stream's alone
@@ -114,17 +117,35 @@ def reconstruction_fid(cfg, tok_dir: Path, stream: str) -> dict:
         ev = None
     if ev is None:
         log.info("no %s evaluator under %s: reconstruction FID skipped", stream, cfg.evaluator.out_dir)
-        return {}
+        return None
     ec = cfg.eval
     protocol = OmegaConf.to_container(ec, resolve=True)
     protocol.update(replications=int(ab.get("fid_replications", 5)), coherence={"enabled": False},
                     sources={"ground_truth": False})
     gt = GroundTruthSource(ctx, str(ec.split), int(ec.max_motion_len), int(ec.unit_length))
-    src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device)
-    res = run_protocol(protocol, gt, {stream: Embedder(ev, int(ec.embed_batch_size))}, {stream: src}, [],
-                       None, None, ctx.n_joints, ctx.layout, progress=False)
-    fid = res[f"recon_{stream}"][stream]["fid"]
-    return {"recon_fid": round(float(fid["mean"]), 4), "recon_fid_ci95": round(float(fid["ci95"]), 4)}
+    embedders = {stream: Embedder(ev, int(ec.embed_batch_size))}
+
+    def score(tok_dir: Path) -> dict:
+        src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device)
+        res = run_protocol(protocol, gt, embedders, {stream: src}, [], None, None, ctx.n_joints, ctx.layout,
+                           progress=False)
+        fid = res[f"recon_{stream}"][stream]["fid"]
+        return {"recon_fid": round(float(fid["mean"]), 4), "recon_fid_ci95": round(float(fid["ci95"]), 4)}
+
+    return score
+
+
+_FID_SETUP = ("eval", "evaluator", "dataset", "paths")
+
+
+def _fid(scorers: dict, pcfg, stream: str, tok_dir: Path) -> dict:
+    """Reconstruction FID of a point, reusing the scorer of an identical evaluation setup."""
+    setup = {k: OmegaConf.to_container(pcfg[k], resolve=True) for k in _FID_SETUP if k in pcfg}
+    key = json.dumps({**setup, "ablation": OmegaConf.to_container(pcfg.vqvae.ablation, resolve=True)},
+                     sort_keys=True, default=str)
+    if key not in scorers:
+        scorers[key] = reconstruction_fid_scorer(pcfg, stream)
+    return scorers[key](tok_dir) if scorers[key] else {}
 
 
 def tables(rows: list[dict], spec: dict, points: list[dict]) -> tuple[str, str]:
@@ -154,6 +175,7 @@ def run(cfg) -> list[dict]:
                             tags={"party.sweep": spec["name"]}) as parent:
         tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
         pid = getattr(parent.info, "run_id", None)
+        scorers: dict[str, object] = {}
         for p in points:
             pcfg = apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}")
             log.info("sweep %s: point %s %s", spec["name"], p["label"], p["overrides"])
@@ -169,12 +191,12 @@ def run(cfg) -> list[dict]:
                          "params": int(m["n_params"]),
                          "mpjpe_mm": round(m["val/mpjpe_mm"], 2),
                          "mpjpe_global_mm": round(m["val/mpjpe_global_mm"], 2),
-                         **reconstruction_fid(pcfg, out / "points" / p["label"], spec["stream"]),
+                         **_fid(scorers, pcfg, spec["stream"], out / "points" / p["label"]),
                          "perplexity": round(m["val/perplexity"], 1),
                          "code_usage": round(m["val/code_usage"], 3), "steps": m["step"]})
-            tracking.log_metrics({f"{p['label']}.mpjpe_mm": m["val/mpjpe_mm"],
-                                  f"{p['label']}.params": m["n_params"]}
-                                 | ({f"{p['label']}.recon_fid": rows[-1]["recon_fid"]} if "recon_fid" in rows[-1] else {}))
+            logged = {"mpjpe_mm": m["val/mpjpe_mm"], "params": m["n_params"],
+                      **{k: rows[-1][k] for k in ("recon_fid",) if k in rows[-1]}}
+            tracking.log_metrics({f"{p['label']}.{k}": v for k, v in logged.items()})
         md, csv_text = tables(rows, spec, points)
         write_text(out / "table.md", md)
         write_text(out / "table.csv", csv_text)
