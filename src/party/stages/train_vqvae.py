@@ -26,6 +26,7 @@ from lightning.pytorch.callbacks import Callback
 
 from party import tracking
 from party.io import atomic_dir, write_json
+from party.tokenizers import diagnostics
 from party.tokenizers.config import crop_length, resume_key, stream_config
 from party.tokenizers.data import (BucketDataset, bucket_loader, eval_sequences, load_stream_data,
                                    train_loader)
@@ -141,12 +142,18 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run_name: str | None 
             log.info("resuming %s from %s", stream, resume)
         trainer.fit(lit, loader, val_loader, ckpt_path=str(resume) if resume else None)
         trainer.validate(lit, val_loader, verbose=False)
+        diag = diagnostics.verdict(lit.val_results, diagnostics.code_spread(model),
+                                   diagnostics.data_spread(val_seqs), dict(cfg.vqvae.diagnostics))
         metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
                    "window": model.window, "codebook_size": model.quantizer.n_codes,
                    "resets_total": int(model.quantizer.resets_total),
                    "train_seconds_this_run": round(time.time() - t0, 1)}
+        metrics["diagnostics"] = diag
         tracking.log_metrics({f"final/{k.split('/')[-1]}": v for k, v in lit.val_results.items()},
                              step=int(trainer.global_step))
+        tracking.log_metrics({f"diag/{k}": float(v) for k, v in diag.items()
+                              if isinstance(v, (int, float))}, step=int(trainer.global_step))
+        tracking.set_tags({"party.tokenizer_status": diag["status"]})
         if trainer.is_global_zero:
             model.eval()
             with atomic_dir(out_dir) as tmp:
@@ -169,10 +176,22 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run_name: str | None 
                 except Exception as e:  # noqa: BLE001 - a video must not fail a finished run
                     log.warning("rendering reconstructions failed: %s", e)
     print(f"train_vqvae[{stream}]: step {metrics['step']} val MPJPE {metrics['val/mpjpe_mm']:.1f} mm "
-          f"(global {metrics['val/mpjpe_global_mm']:.1f}), {n_params / 1e6:.2f}M params -> {out_dir}")
+          f"(global {metrics['val/mpjpe_global_mm']:.1f}; mean-pose baseline "
+          f"{diag['mpjpe_meanpose_mm']:.1f}, ratio {diag['mpjpe_ratio']:.2f}), code spread "
+          f"{diag['code_spread']:.2f} (data {diag['data_spread']:.2f}), codes used "
+          f"{diag['code_usage']:.0%}, {n_params / 1e6:.2f}M params -> {out_dir}: {diag['status'].upper()}")
+    if diag["status"] != "ok":
+        log.error("\n%s", diagnostics.banner(stream, diag))
     return metrics
 
 
 def run(cfg) -> dict:
     stream = str(cfg.vqvae.stream)
-    return train_tokenizer(cfg, stream, Path(cfg.vqvae.out_dir) / stream)
+    metrics = train_tokenizer(cfg, stream, Path(cfg.vqvae.out_dir) / stream)
+    diag = metrics["diagnostics"]
+    if diag["status"] != "ok" and cfg.vqvae.diagnostics.on_collapse == "error":
+        raise RuntimeError(f"{Path(cfg.vqvae.out_dir) / stream}: tokenizer collapsed: "
+                           + "; ".join(diag["reasons"])
+                           + " (outputs and checkpoint kept; vqvae.diagnostics.on_collapse=warn "
+                             "to continue anyway)")
+    return metrics

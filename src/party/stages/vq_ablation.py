@@ -91,8 +91,8 @@ def dvc_commands(spec: dict, points: list[dict]) -> list[str]:
             + " ".join(f"-S '{o}'" for o in p["overrides"]) for p in points]
 
 
-COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_mm", "recon_fid",
-           "recon_fid_ci95", "perplexity", "code_usage", "steps"]
+COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
+           "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "status"]
 
 
 def reconstruction_fid_scorer(cfg, stream: str):
@@ -156,7 +156,8 @@ def tables(rows: list[dict], spec: dict, points: list[dict]) -> tuple[str, str]:
     head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
     body = "".join("| " + " | ".join(str(r.get(c, "")) for c in COLUMNS) + " |\n" for r in rows)
     md = (f"# {spec['name']}\n\n{spec.get('description', '')}\n\n{head}{body}\n"
-          "MPJPE: validation set, mm, root-aligned per frame (global: without alignment).\n"
+          "MPJPE: validation set, mm, root-aligned per frame (global: without alignment); "
+          "mpjpe_ratio: over the mean-pose baseline's (status `collapsed`: not clearly below it).\n"
           "Reconstruction FID: the evaluate protocol on `eval.split` with the stream's evaluator "
           "(empty: no evaluator trained).\n\n"
           "Same grid as queued DVC experiments (then `dvc queue start -j 1`):\n\n```\n"
@@ -191,9 +192,11 @@ def run(cfg) -> list[dict]:
                          "params": int(m["n_params"]),
                          "mpjpe_mm": round(m["val/mpjpe_mm"], 2),
                          "mpjpe_global_mm": round(m["val/mpjpe_global_mm"], 2),
+                         "mpjpe_ratio": round(m["diagnostics"]["mpjpe_ratio"], 3),
                          **_fid(scorers, pcfg, spec["stream"], out / "points" / p["label"]),
                          "perplexity": round(m["val/perplexity"], 1),
-                         "code_usage": round(m["val/code_usage"], 3), "steps": m["step"]})
+                         "code_usage": round(m["val/code_usage"], 3), "steps": m["step"],
+                         "status": m["diagnostics"]["status"]})
             logged = {"mpjpe_mm": m["val/mpjpe_mm"], "params": m["n_params"],
                       **{k: rows[-1][k] for k in ("recon_fid",) if k in rows[-1]}}
             tracking.log_metrics({f"{p['label']}.{k}": v for k, v in logged.items()})

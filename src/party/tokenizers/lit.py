@@ -1,6 +1,7 @@
 """LightningModule around a ``Tokenizer``: losses, schedule, validation metrics.
 
-L_vq = L_rec + lambda_app * L_app (+ lambda_feat * L_feat, off by default):
+L_vq = lambda_rec * L_rec + lambda_app * L_app + lambda_feat * L_feat + lambda_vel * L_vel
+(the paper: lambda_rec = lambda_app = 1, no feature terms; ``conf/vqvae/paper.yaml``):
 - L_rec: L1 between joint positions recovered (``recover_from_ric``, differentiable)
   from the decoded and from the ground-truth features, both denormalised; for a
   part stream only that stream's joints (root included).
@@ -8,12 +9,15 @@ L_vq = L_rec + lambda_app * L_app (+ lambda_feat * L_feat, off by default):
   L1 on root-relative positions + L1 on the root position. Why the switch: the
   root path integrates velocities, so early in training its error exceeds every
   pose error; with L1 each joint's gradient is then the sign of the shared path
-  error and the pose gets no useful signal (measured: world-L1 training stays at
-  the dataset-mean-pose MPJPE for ~1K iterations);
+  error and the pose gets no useful signal;
 - L_app: L2 between encoder output and its stop-gradient code;
-- L_feat: L1 on the normalised features (a switch, not in the paper).
+- L_feat, L_vel: ``loss.feat_loss`` (l1 | smooth_l1) on the normalised features and
+  on their frame-to-frame differences (T2M-GPT / MoMask's reconstruction terms).
+  With positions alone and lambda_app = 1 the tokenizers collapse to the mean pose
+  at CPU budgets (docs/tokenizers.md, "Collapse"); the default CPU recipe adds these.
 Validation runs whole clips (bucketed, see ``data.BucketDataset``) and reports
-MPJPE in mm, root-aligned per frame (MoMask's protocol) and global.
+MPJPE in mm, root-aligned per frame (MoMask's protocol) and global, next to the
+mean-pose baseline's (every frame decoded as the dataset mean) on the same frames.
 """
 from __future__ import annotations
 
@@ -21,6 +25,15 @@ import lightning as L
 import torch
 
 from party.tokenizers.vqvae import Tokenizer
+
+
+def _penalty(kind: str):
+    """Element-wise penalty of the feature terms: ``l1`` or ``smooth_l1`` (Huber, beta 1)."""
+    if kind == "l1":
+        return lambda a, b: (a - b).abs()
+    if kind == "smooth_l1":
+        return lambda a, b: torch.nn.functional.smooth_l1_loss(a, b, reduction="none")
+    raise ValueError(f"vqvae.loss.feat_loss must be l1|smooth_l1, got {kind!r}")
 
 
 def lr_factor(step: int, optim: dict) -> float:
@@ -53,7 +66,11 @@ class VQVAELit(L.LightningModule):
     def _losses(self, out: dict) -> dict:
         m = out["frame_mask"]
         denom = m.sum().clamp(min=1)
-        j_hat, j_gt = self._joints(out["recon"]), self._joints(out["target"])
+        lc = self.loss_cfg
+        # with lambda_rec = 0, L_rec is only monitored: no graph through recover_from_ric
+        with torch.set_grad_enabled(torch.is_grad_enabled() and float(lc["lambda_rec"]) != 0):
+            j_hat = self._joints(out["recon"])
+        j_gt = self._joints(out["target"])
         if self.loss_cfg.get("rec_positions", "global") == "root_split":
             # L1 on root-relative positions + L1 on the root position (see module docstring)
             err = (((j_hat - j_hat[..., :1, :]) - (j_gt - j_gt[..., :1, :])).abs().mean((-1, -2))
@@ -64,13 +81,17 @@ class VQVAELit(L.LightningModule):
             raise ValueError(f"vqvae.loss.rec_positions must be global|root_split, "
                              f"got {self.loss_cfg.get('rec_positions')!r}")
         l_rec = (err * m).sum() / denom
-        l_feat = ((out["recon"] - out["target"]).abs().mean(-1) * m).sum() / denom
-        lc = self.loss_cfg
-        loss = l_rec + float(lc["lambda_app"]) * out["loss_app"]
-        if float(lc.get("lambda_feat", 0.0)):
-            loss = loss + float(lc["lambda_feat"]) * l_feat
+        pen = _penalty(lc["feat_loss"])
+        l_feat = (pen(out["recon"], out["target"]).mean(-1) * m).sum() / denom
+        # velocity of the normalised features (T2M-GPT's L_vel), on pairs of valid frames
+        mv = m[:, 1:] & m[:, :-1]
+        l_vel = (pen(out["recon"][:, 1:] - out["recon"][:, :-1],
+                     out["target"][:, 1:] - out["target"][:, :-1]).mean(-1) * mv).sum() \
+            / mv.sum().clamp(min=1)
+        loss = (float(lc["lambda_rec"]) * l_rec + float(lc["lambda_app"]) * out["loss_app"]
+                + float(lc["lambda_feat"]) * l_feat + float(lc["lambda_vel"]) * l_vel)
         return {"loss": loss, "l_rec": l_rec, "l_app": out["loss_app"], "l_feat": l_feat,
-                "j_hat": j_hat, "j_gt": j_gt}
+                "l_vel": l_vel, "j_hat": j_hat, "j_gt": j_gt}
 
     def training_step(self, batch, batch_idx):
         x = batch["x"] if isinstance(batch, dict) else batch
@@ -78,7 +99,8 @@ class VQVAELit(L.LightningModule):
         ls = self._losses(out)
         q = self.model.quantizer
         self.log_dict({"train/loss": ls["loss"], "train/l_rec": ls["l_rec"], "train/l_app": ls["l_app"],
-                       "train/l_feat": ls["l_feat"], "train/perplexity": out["perplexity"],
+                       "train/l_feat": ls["l_feat"], "train/l_vel": ls["l_vel"],
+                       "train/perplexity": out["perplexity"],
                        "train/codes_used": float(out["usage"]), "train/resets": float(out["resets"]),
                        "train/resets_total": float(q.resets_total)},
                       prog_bar=False, batch_size=len(x))
@@ -88,7 +110,7 @@ class VQVAELit(L.LightningModule):
     # -------------------------------------------------------------- validation
     def on_validation_epoch_start(self) -> None:
         K = self.model.quantizer.n_codes
-        self._val = {"err": 0.0, "err_g": 0.0, "rec": 0.0, "frames": 0.0,
+        self._val = {"err": 0.0, "err_g": 0.0, "rec": 0.0, "frames": 0.0, "err_mean": 0.0,
                      "hist": torch.zeros(K, dtype=torch.float64, device=self.device)}
         self.val_outputs = {}
 
@@ -102,7 +124,11 @@ class VQVAELit(L.LightningModule):
         jh, jg = ls["j_hat"], ls["j_gt"]
         err_g = (jh - jg).norm(dim=-1).mean(-1)
         err = ((jh - jh[..., :1, :]) - (jg - jg[..., :1, :])).norm(dim=-1).mean(-1)
+        # the trivial baseline on the same frames: every frame decoded as the dataset mean
+        jm = self._joints(torch.zeros_like(out["target"]))
+        err_mean = ((jm - jm[..., :1, :]) - (jg - jg[..., :1, :])).norm(dim=-1).mean(-1)
         v = self._val
+        v["err_mean"] += float((err_mean * m).sum())
         v["err"] += float((err * m).sum())
         v["err_g"] += float((err_g * m).sum())
         v["rec"] += float(((jh - jg).abs().mean((-1, -2)) * m).sum())
@@ -118,13 +144,15 @@ class VQVAELit(L.LightningModule):
     def on_validation_epoch_end(self) -> None:
         v = self._val
         red = self.trainer.strategy.reduce if self._trainer is not None else (lambda t, **_: t)
-        tot = red(torch.tensor([v["err"], v["err_g"], v["rec"], v["frames"]], dtype=torch.float64,
+        tot = red(torch.tensor([v["err"], v["err_g"], v["rec"], v["frames"], v["err_mean"]],
+                               dtype=torch.float64,
                                device=self.device), reduce_op="sum")
         hist = red(v["hist"], reduce_op="sum")
         frames = max(float(tot[3]), 1.0)
         p = hist / hist.sum().clamp(min=1)
         res = {"val/mpjpe_mm": float(tot[0]) / frames * self.unit_scale,
                "val/mpjpe_global_mm": float(tot[1]) / frames * self.unit_scale,
+               "val/mpjpe_meanpose_mm": float(tot[4]) / frames * self.unit_scale,
                "val/l_rec": float(tot[2]) / frames,
                "val/perplexity": float(torch.exp(-(p * torch.log(p + 1e-12)).sum())),
                "val/code_usage": float((hist > 0).float().mean()),

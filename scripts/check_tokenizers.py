@@ -1,0 +1,75 @@
+"""Do the trained tokenizers keep a named side? (synthetic dataset only)
+
+    .venv/bin/python scripts/check_tokenizers.py [--tokenizers data/tokenizers] [--splits train test]
+                                                 [--out data/tokenizers/side_checks.json]
+
+For every stream's tokenizer: tokenize and decode the whole single-segment clips whose
+arms wave with one named hand (holistic, arms) or whose legs kick with one named foot
+(holistic, legs); a part stream's reconstruction is put back into the ground-truth body.
+Prints, per split, how many reconstructions keep the named side (``party.data.synthetic
+.checks``: wrist over shoulder in >= 20 points more frames than the other wrist; ankle
+10 cm over the other more often than the reverse) next to the ground truth's count.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from party.data import MotionStore, load_index
+from party.data.synthetic.checks import kick_kept, load_specs, probe_clips, wave_kept
+from party.motion.features import recover_from_ric
+from party.tokenizers import load_tokenizer
+
+CHECKS = {"holistic": ("wave", "kick"), "arms": ("wave",), "legs": ("kick",)}
+KEPT = {"wave": wave_kept, "kick": kick_kept}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params", default="params.yaml")
+    ap.add_argument("--tokenizers", default=None, help="folder with <stream>/model.pt (default vqvae.out_dir)")
+    ap.add_argument("--streams", nargs="*", default=list(CHECKS))
+    ap.add_argument("--splits", nargs="*", default=["train", "test"])
+    ap.add_argument("--out", default=None, help="also write the counts as JSON here")
+    a = ap.parse_args()
+    cfg = OmegaConf.load(a.params)
+    index = load_index(Path(cfg.paths.prepared))
+    specs = load_specs(index.root)
+    store = MotionStore(index.root, index.feat_dim)
+    tok_dir = Path(a.tokenizers or cfg.vqvae.out_dir)
+    results = {}
+    for stream in a.streams:
+        path = tok_dir / stream
+        if not (path / "model.pt").exists():
+            print(f"{path}: no tokenizer, skipped")
+            continue
+        tok = load_tokenizer(path)
+        fi = torch.as_tensor(tok.meta["feat_index"])
+        for split in a.splits:
+            for kind in CHECKS[stream]:
+                clips = probe_clips(index, specs, split, kind)
+                kept = gt_kept = 0
+                for clip, side in clips:
+                    raw = torch.as_tensor(store.clip_features(clip))
+                    with torch.no_grad():
+                        rec = tok.detokenize(tok.tokenize(raw[:, fi]))
+                    gt = raw[:len(rec)]
+                    full = gt.clone()
+                    full[:, fi] = rec
+                    gt_kept += KEPT[kind](recover_from_ric(gt.double(), index.n_joints).numpy(), side)
+                    kept += KEPT[kind](recover_from_ric(full.double(), index.n_joints).numpy(), side)
+                n = len(clips)
+                results[f"{stream}/{split}/{kind}"] = {"clips": n, "kept": int(kept), "gt_kept": int(gt_kept),
+                                                       "rate": kept / n if n else None}
+                print(f"{stream:9s} {split:5s} {kind}: {kept}/{n} kept ({kept / max(n, 1):.0%}); "
+                      f"ground truth {gt_kept}/{n}")
+    if a.out:
+        Path(a.out).write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,55 @@
+"""Side checks from the synthetic specs: a one-handed wave / one-footed kick and their mirrors."""
+import json
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from party.data.synthetic import make_action, mirror_joints, single_spec, synthesize
+from party.data.synthetic.checks import kick_kept, load_specs, probe_clips, wave_kept
+from party.data.index import Index
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = OmegaConf.load(ROOT / "conf/dataset/synthetic.yaml")
+S, FPS = CFG.synthetic, float(CFG.fps)
+
+
+def joints(legs, arms, side_legs=None, side_arms=None):
+    spec = single_spec(make_action(legs, S.legs, None, **({"side": side_legs} if side_legs else {})),
+                       make_action(arms, S.arms, None, **({"side": side_arms} if side_arms else {})), FPS)
+    return synthesize(spec, S.body, FPS)
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_wave_kept_names_the_waving_hand(side):
+    other = {"left": "right", "right": "left"}[side]
+    j = joints("stand", "wave", side_arms=side)
+    assert wave_kept(j, side) and not wave_kept(j, other)
+    m = mirror_joints(j)
+    assert wave_kept(m, other) and not wave_kept(m, side)
+    assert not wave_kept(joints("stand", "rest"), side)
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_kick_kept_names_the_kicking_foot(side):
+    other = {"left": "right", "right": "left"}[side]
+    j = joints("kick", "rest", side_legs=side)
+    assert kick_kept(j, side) and not kick_kept(j, other)
+    assert not kick_kept(joints("stand", "rest"), side)
+
+
+def test_probe_clips_pick_whole_single_clips_with_one_named_side(tmp_path):
+    def spec(name, arms, side, kind="single"):
+        return {"name": name, "kind": kind, "arms": [{"name": arms, "side": side}],
+                "legs": [{"name": "stand", "side": None}]}
+    specs = [spec("a", "wave", "left"), spec("b", "wave", "both"), spec("c", "wave", "right", "arms_seq"),
+             spec("d", "clap", None), spec("Ma", "wave", "right")]
+    (tmp_path / "specs.jsonl").write_text("".join(json.dumps(s) + "\n" for s in specs))
+    clips = [{"id": n, "motion": n, "start": 0, "end": 60, "split": "train", "captions": []}
+             for n in ("a", "b", "c", "d", "Ma")]
+    clips.append({"id": "a#0-40", "motion": "a", "start": 0, "end": 40, "split": "train", "captions": []})
+    index = Index("synthetic", str(tmp_path), 20.0, 263, 22, "t2m", clips)
+    got = [(c["id"], side) for c, side in probe_clips(index, load_specs(tmp_path), "train", "wave")]
+    assert got == [("a", "left"), ("Ma", "right")]
+    with pytest.raises(FileNotFoundError, match="specs.jsonl"):
+        load_specs(tmp_path / "nowhere")
