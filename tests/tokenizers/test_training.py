@@ -207,3 +207,15 @@ def test_sweeps_in_conf_expand():
     assert len(tab4) == 6 and tab4[0]["label"] == "w4-baseline"
     s12 = vq_ablation.expand(vq_ablation.load_sweep("vq_s12", conf))
     assert len(s12) == 4 and all("vqvae.tokenizers.holistic.window=8" in p["overrides"] for p in s12)
+
+
+def test_resume_key_treats_int_and_float_alike():
+    """`vqvae.loss.lambda_rec=0` on the command line must resume a run configured with 0.0."""
+    from party.tokenizers.config import resume_key
+    base = {"model": {"window": 8, "lte": {"enabled": True}}, "loss": {"lambda_rec": 0.0},
+            "optim": {"lr": 1e-3}, "train": {"batch_size": 64, "max_steps": 10}}
+    cli = {**base, "loss": {"lambda_rec": 0}, "train": {"batch_size": 64, "max_steps": 99}}
+    assert resume_key(base, {"seed": 0}) == resume_key(cli, {"seed": 0})
+    assert resume_key(base, {"seed": 0}) != resume_key({**base, "loss": {"lambda_rec": 0.5}}, {"seed": 0})
+    off = {**base, "model": {"window": 8, "lte": {"enabled": False}}}
+    assert resume_key(base, {"seed": 0}) != resume_key(off, {"seed": 0})
