@@ -152,3 +152,18 @@ def test_changed_prompt_needs_new_prompt_version(tmp_path, fake_llm, monkeypatch
         cache_part_texts.run(cfg)
     cfg.part_texts.prompt_version = "fig_s5-v2"
     assert cache_part_texts.run(cfg)["misses"] == 1
+
+
+@pytest.mark.parametrize("concurrency", [1, 4])
+def test_max_consecutive_failures_holds_at_any_concurrency(tmp_path, fake_llm, concurrency):
+    """Server down: the stage stops after max_consecutive_failures captions, not after trying all."""
+    write_index(tmp_path, CAPS)
+    llm = fake_llm(default="500")
+    cfg = openai_cfg(tmp_path, llm, **{"part_texts.concurrency": concurrency,
+                                       "part_texts.max_consecutive_failures": 2})
+    with pytest.raises(BackendError, match="2 captions in a row failed"):
+        cache_part_texts.run(cfg)
+    tries = 1 + int(cfg.part_texts.max_retries)
+    if concurrency == 1:                 # exactly the first two captions, each with every retry
+        assert sorted(llm.per_caption.values()) == [tries, tries]
+    assert llm.requests < len(ALL) * tries                   # not every caption with all retries

@@ -124,13 +124,27 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
     max_consecutive = int(cfg.get("max_consecutive_failures", 0)) or None
     bar = tqdm(total=len(todo), desc=f"part texts ({backend.name})", disable=not progress or not todo)
     stop: threading.Event = getattr(backend, "stop", threading.Event())
+    streak = [0]
+
+    def check_streak(res: PartTextResult) -> None:
+        """Stop after ``max_consecutive_failures`` captions in a row got no answer (any concurrency)."""
+        streak[0] = streak[0] + 1 if not res.cacheable else 0
+        if max_consecutive and streak[0] >= max_consecutive:
+            raise BackendError(f"{streak[0]} captions in a row failed after retries "
+                               f"(last: {res.reason}); is the server at "
+                               f"{cfg.get('base_url')} up?")
+
     if workers == 1:
-        for cap in todo:
-            record(cap, backend.describe(cap))
-            bar.update()
+        try:
+            for cap in todo:
+                res = backend.describe(cap)
+                record(cap, res)
+                bar.update()
+                check_streak(res)
+        finally:
+            bar.close()
     else:
         pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="part-texts")
-        consecutive = 0
         try:
             pending, queue = set(), iter(todo)
             future_cap = {}
@@ -146,11 +160,7 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
                     res = f.result()                           # BackendError propagates
                     record(future_cap.pop(f), res)
                     bar.update()
-                    consecutive = consecutive + 1 if not res.cacheable else 0
-                    if max_consecutive and consecutive >= max_consecutive:
-                        raise BackendError(f"{consecutive} captions in a row failed after retries "
-                                           f"(last: {res.reason}); is the server at "
-                                           f"{cfg.get('base_url')} up?")
+                    check_streak(res)
                     nxt = next(queue, None)
                     if nxt is not None:
                         nf = pool.submit(backend.describe, nxt)
