@@ -16,7 +16,6 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
 
 from party.data import MotionStore, load_index
@@ -25,7 +24,9 @@ from party.motion.features import recover_from_ric
 from party.tokenizers import load_tokenizer
 
 CHECKS = {"holistic": ("wave", "kick"), "arms": ("wave",), "legs": ("kick",)}
-KEPT = {"wave": wave_kept, "kick": kick_kept}
+# criteria from vqvae.diagnostics.side_checks
+KEPT = {"wave": lambda c: lambda j, side: wave_kept(j, side, float(c.wave_margin)),
+        "kick": lambda c: lambda j, side: kick_kept(j, side, float(c.kick_lift_m))}
 
 
 def main() -> None:
@@ -41,6 +42,7 @@ def main() -> None:
     specs = load_specs(index.root)
     store = MotionStore(index.root, index.feat_dim)
     tok_dir = Path(a.tokenizers or cfg.vqvae.out_dir)
+    side_cfg = cfg.vqvae.diagnostics.side_checks
     results = {}
     for stream in a.streams:
         path = tok_dir / stream
@@ -48,20 +50,15 @@ def main() -> None:
             print(f"{path}: no tokenizer, skipped")
             continue
         tok = load_tokenizer(path)
-        fi = torch.as_tensor(tok.meta["feat_index"])
         for split in a.splits:
             for kind in CHECKS[stream]:
+                kept_fn = KEPT[kind](side_cfg)
                 clips = probe_clips(index, specs, split, kind)
                 kept = gt_kept = 0
                 for clip, side in clips:
-                    raw = torch.as_tensor(store.clip_features(clip))
-                    with torch.no_grad():
-                        rec = tok.detokenize(tok.tokenize(raw[:, fi]))
-                    gt = raw[:len(rec)]
-                    full = gt.clone()
-                    full[:, fi] = rec
-                    gt_kept += KEPT[kind](recover_from_ric(gt.double(), index.n_joints).numpy(), side)
-                    kept += KEPT[kind](recover_from_ric(full.double(), index.n_joints).numpy(), side)
+                    gt, full = tok.reconstruct_full(store.clip_features(clip))
+                    gt_kept += kept_fn(recover_from_ric(gt.double(), index.n_joints).numpy(), side)
+                    kept += kept_fn(recover_from_ric(full.double(), index.n_joints).numpy(), side)
                 n = len(clips)
                 results[f"{stream}/{split}/{kind}"] = {"clips": n, "kept": int(kept), "gt_kept": int(gt_kept),
                                                        "rate": kept / n if n else None}

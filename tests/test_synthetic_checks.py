@@ -6,12 +6,22 @@ import pytest
 from omegaconf import OmegaConf
 
 from party.data.synthetic import make_action, mirror_joints, single_spec, synthesize
-from party.data.synthetic.checks import kick_kept, load_specs, probe_clips, wave_kept
+from party.data.synthetic import checks
+from party.data.synthetic.checks import load_specs, probe_clips
 from party.data.index import Index
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = OmegaConf.load(ROOT / "conf/dataset/synthetic.yaml")
 S, FPS = CFG.synthetic, float(CFG.fps)
+SIDE = OmegaConf.load(ROOT / "conf/vqvae/paper.yaml").diagnostics.side_checks
+
+
+def wave_kept(j, side):
+    return checks.wave_kept(j, side, float(SIDE.wave_margin))
+
+
+def kick_kept(j, side):
+    return checks.kick_kept(j, side, float(SIDE.kick_lift_m))
 
 
 def joints(legs, arms, side_legs=None, side_arms=None):

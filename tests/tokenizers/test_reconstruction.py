@@ -20,6 +20,7 @@ from conftest import CONF, tiny_cfg
 from recon_fixture import DOWN, RAISED, write_recon_dataset
 
 L_WRIST, L_SHOULDER = 20, 16
+RUN = int(OmegaConf.load(CONF / "vqvae" / "paper.yaml").diagnostics.code_run_length)
 
 
 def recipe_cfg(tmp, prepared, **over):
@@ -91,7 +92,7 @@ def test_decoded_pose_varies_across_codes(trained):
     _, tok, metrics = trained
     d = metrics["diagnostics"]
     assert d["code_spread_ratio"] > 0.3, d
-    assert d["code_spread"] == pytest.approx(diagnostics.code_spread(tok.model))
+    assert d["code_spread"] == pytest.approx(diagnostics.code_spread(tok.model, RUN))
 
 
 def test_verdict_flags_a_collapsed_tokenizer():
@@ -112,10 +113,10 @@ def test_code_spread_of_a_constant_decoder_is_zero():
     cfg["lte"]["hidden"] = cfg["gte"]["hidden"] = 8
     m = VQVAE(20, cfg)
     torch.nn.init.normal_(m.quantizer.codebook)
-    assert diagnostics.code_spread(m) > 0
+    assert diagnostics.code_spread(m, RUN) > 0
     last = m.decoder.net[-1]
     torch.nn.init.zeros_(last.weight)
-    assert diagnostics.code_spread(m) == pytest.approx(0.0, abs=1e-7)
+    assert diagnostics.code_spread(m, RUN) == pytest.approx(0.0, abs=1e-7)
 
 
 def test_collapsed_run_fails_the_stage_after_writing_outputs(tmp_path, monkeypatch):

@@ -73,15 +73,9 @@ def _render(tok: Tokenizer, data, clips: list[dict], stream: str) -> None:
     """Log GT-vs-reconstruction stick-figure videos; a part stream is shown inside the
     ground-truth body (its channels replaced by the reconstruction)."""
     from party.motion.features import recover_from_ric
-    idx = torch.as_tensor(data.feat_index)
     nj = int(tok.meta["n_joints"])
     for clip in clips:
-        raw = torch.as_tensor(data.store.clip_features(clip))
-        with torch.no_grad():
-            rec = tok.detokenize(tok.tokenize(raw[:, idx]))
-        full_gt = raw[:len(rec)]
-        full_rec = full_gt.clone()
-        full_rec[:, idx] = rec
+        full_gt, full_rec = tok.reconstruct_full(data.store.clip_features(clip))
         j_gt = recover_from_ric(full_gt.double(), nj).numpy()
         j_rec = recover_from_ric(full_rec.double(), nj).numpy()
         tracking.log_video([j_gt, j_rec], f"recon/{stream}_{clip['id'].replace('#', '_')}.gif",
@@ -142,7 +136,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run_name: str | None 
             log.info("resuming %s from %s", stream, resume)
         trainer.fit(lit, loader, val_loader, ckpt_path=str(resume) if resume else None)
         trainer.validate(lit, val_loader, verbose=False)
-        diag = diagnostics.verdict(lit.val_results, diagnostics.code_spread(model),
+        diag = diagnostics.verdict(lit.val_results, diagnostics.code_spread(model, int(cfg.vqvae.diagnostics.code_run_length)),
                                    diagnostics.data_spread(val_seqs), dict(cfg.vqvae.diagnostics))
         metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
                    "window": model.window, "codebook_size": model.quantizer.n_codes,

@@ -124,13 +124,14 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
     max_consecutive = int(cfg.get("max_consecutive_failures", 0)) or None
     bar = tqdm(total=len(todo), desc=f"part texts ({backend.name})", disable=not progress or not todo)
     stop: threading.Event = getattr(backend, "stop", threading.Event())
-    streak = [0]
+    streak = 0
 
     def check_streak(res: PartTextResult) -> None:
         """Stop after ``max_consecutive_failures`` captions in a row got no answer (any concurrency)."""
-        streak[0] = streak[0] + 1 if not res.cacheable else 0
-        if max_consecutive and streak[0] >= max_consecutive:
-            raise BackendError(f"{streak[0]} captions in a row failed after retries "
+        nonlocal streak
+        streak = streak + 1 if not res.cacheable else 0
+        if max_consecutive and streak >= max_consecutive:
+            raise BackendError(f"{streak} captions in a row failed after retries "
                                f"(last: {res.reason}); is the server at "
                                f"{cfg.get('base_url')} up?")
 

@@ -23,7 +23,7 @@ import torch
 
 
 @torch.no_grad()
-def code_spread(model, run_length: int = 4) -> float:
+def code_spread(model, run_length: int) -> float:
     """Mean over channels of the std across codes of ``decode([k] * run_length)`` (time-averaged)."""
     was = model.training
     model.eval()

@@ -48,6 +48,7 @@ class VQVAELit(L.LightningModule):
         super().__init__()
         self.tok = tok
         self.loss_cfg, self.optim_cfg = scfg["loss"], scfg["optim"]
+        self._pen = _penalty(self.loss_cfg["feat_loss"])   # bad value: fails at construction
         m = metrics_cfg or {}
         self.unit_scale = float(m.get("unit_scale", 1000.0))
         self.keep_outputs = False          # tests / extraction checks: keep val codes + recon
@@ -81,7 +82,7 @@ class VQVAELit(L.LightningModule):
             raise ValueError(f"vqvae.loss.rec_positions must be global|root_split, "
                              f"got {self.loss_cfg.get('rec_positions')!r}")
         l_rec = (err * m).sum() / denom
-        pen = _penalty(lc["feat_loss"])
+        pen = self._pen
         l_feat = (pen(out["recon"], out["target"]).mean(-1) * m).sum() / denom
         # velocity of the normalised features (T2M-GPT's L_vel), on pairs of valid frames
         mv = m[:, 1:] & m[:, :-1]

@@ -195,6 +195,19 @@ class Tokenizer(nn.Module):
         idx = torch.as_tensor(codes, dtype=torch.long, device=self.mean.device)
         return self.denormalize(self.model.decode(idx[None])[0])
 
+    @torch.no_grad()
+    def reconstruct_full(self, raw_full) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw full feature vectors (T, D_full) -> (ground truth, reconstruction), both (T', D_full):
+        the stream's channels tokenized and decoded, every other channel the ground truth's
+        (a part stream shown inside the ground-truth body); T' = frames the codes cover."""
+        raw = torch.as_tensor(raw_full, dtype=torch.float32, device=self.mean.device)
+        idx = self.feat_index.to(raw.device)
+        rec = self.detokenize(self.tokenize(raw[:, idx]))
+        gt = raw[:len(rec)]
+        full = gt.clone()
+        full[:, idx] = rec
+        return gt, full
+
     def export(self) -> dict:
         return {"format": TOKENIZER_FORMAT, "in_dim": self.model.in_dim, "config": self.model.cfg,
                 "meta": self.meta, "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}

@@ -6,9 +6,11 @@ keeps a *named* side can be checked against what was generated, not against a
 parse of the caption:
 
 - ``wave_kept``: the named wrist is above its own shoulder in at least
-  ``margin`` (default 0.20) more of the frames than the other wrist is above its;
-- ``kick_kept``: the named ankle is ``lift_m`` (0.10 m) above the other in more
-  frames than the reverse.
+  ``margin`` more of the frames than the other wrist is above its;
+- ``kick_kept``: the named ankle is ``lift_m`` above the other in more frames
+  than the reverse.
+
+The thresholds are ``vqvae.diagnostics.side_checks`` (0.20 and 0.10 m).
 
 ``probe_clips`` picks the whole single-segment clips of a split whose arm action
 is a one-sided wave (or whose leg action is a one-sided kick).
@@ -35,13 +37,13 @@ def load_specs(root: str | Path) -> dict[str, dict]:
     return {s["name"]: s for s in map(json.loads, path.read_text().splitlines()) if s}
 
 
-def wave_kept(joints: np.ndarray, side: str, margin: float = 0.20) -> bool:
+def wave_kept(joints: np.ndarray, side: str, margin: float) -> bool:
     """joints (T, 22, 3), y up: is the ``side`` wrist raised in clearly more frames than the other?"""
     up = {s: float(np.mean(joints[:, WRIST[s], 1] > joints[:, SHOULDER[s], 1])) for s in WRIST}
     return up[side] - up[OTHER[side]] >= margin
 
 
-def kick_kept(joints: np.ndarray, side: str, lift_m: float = 0.10) -> bool:
+def kick_kept(joints: np.ndarray, side: str, lift_m: float) -> bool:
     """joints (T, 22, 3): is the ``side`` ankle lifted ``lift_m`` above the other more often than the reverse?"""
     a, b = joints[:, ANKLE[side], 1], joints[:, ANKLE[OTHER[side]], 1]
     return float(np.mean(a > b + lift_m)) > float(np.mean(b > a + lift_m))
