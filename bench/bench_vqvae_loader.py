@@ -36,7 +36,8 @@ def main(argv=None) -> int:
 
     from party.config import load_params
     from party.tokenizers.config import crop_length, stream_config
-    from party.tokenizers.data import load_stream_data, train_loader
+    from party.data.context import load_stream_data
+    from party.tokenizers.data import train_loader
     from party.tokenizers.lit import VQVAELit
     from party.tokenizers.vqvae import VQVAE, Tokenizer
 

@@ -1,6 +1,7 @@
 """Fixture builders shared by tests (no network, no real dataset needed)."""
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,11 @@ def wiggle_joints(n_frames: int, seed: int = 0, skeleton: str = "t2m") -> np.nda
     return pos
 
 
+def name_seed(name: str) -> int:
+    """A seed from a name, the same in every process (``hash`` of a str is salted per process)."""
+    return zlib.crc32(name.encode("utf-8")) % 1000
+
+
 def write_humanml3d_fixture(root: Path, names_by_split: dict[str, list[str]], n_frames: int = 60,
                             skeleton: str = "t2m", texts: dict[str, str] | None = None) -> Path:
     """A tiny dataset in the exact HumanML3D layout (features computed from joints)."""
@@ -48,7 +54,7 @@ def write_humanml3d_fixture(root: Path, names_by_split: dict[str, list[str]], n_
     for split, names in names_by_split.items():
         (root / f"{split}.txt").write_text("".join(n + "\n" for n in names))
         for i, name in enumerate(names):
-            joints = wiggle_joints(n_frames + 1, seed=hash(name) % 1000, skeleton=skeleton)
+            joints = wiggle_joints(n_frames + 1, seed=name_seed(name), skeleton=skeleton)
             feats, canon = joints_to_features(joints, sk)
             np.save(root / "new_joint_vecs" / f"{name}.npy", feats)
             np.save(root / "new_joints" / f"{name}.npy", canon[:-1].astype(np.float32))

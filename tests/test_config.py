@@ -50,3 +50,15 @@ def test_cli_help_and_unknown_stage():
     assert out.returncode == 0 and "prepare" in out.stdout
     bad = subprocess.run([sys.executable, "-m", "party.cli", "nope"], capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown command" in bad.stderr
+
+
+def test_dvc_stages_follow_the_configured_streams():
+    """dvc.yaml's `foreach: ${dataset.parts.streams}` expands to one stage per stream of params.yaml."""
+    import yaml
+    streams = yaml.safe_load((ROOT / "params.yaml").read_text())["dataset"]["parts"]["streams"]
+    out = subprocess.run([str(Path(sys.executable).parent / "dvc"), "stage", "list", "--name-only"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    names = out.stdout.split()
+    for stage in ("train_vqvae", "train_evaluator"):
+        assert [n.split("@")[1] for n in names if n.startswith(f"{stage}@")] == streams, names

@@ -78,6 +78,26 @@ def test_part_slicing_roundtrips_exactly(repo_root, skeleton, n_joints):
     assert len(allj) == len(set(allj)) == n_joints
 
 
+@pytest.mark.parametrize("skeleton,n_joints", [("t2m", 22), ("kit", 21)])
+def test_stream_names_come_from_the_config(repo_root, skeleton, n_joints):
+    cfg = yaml.safe_load((repo_root / f"conf/dataset/parts/{skeleton}.yaml").read_text())
+    layout = PartLayout.from_config(cfg, n_joints)
+    assert layout.streams == cfg["streams"] == list(layout.stream_index)
+    assert [layout.whole_stream, *layout.part_streams] == cfg["streams"]
+    assert np.array_equal(layout.index(layout.whole_stream), np.arange(layout.feat_dim))
+    renamed = {**cfg, "streams": ["body", "upper", "lower"],
+               "stream_parts": {"upper": cfg["stream_parts"]["arms"], "lower": cfg["stream_parts"]["legs"]}}
+    other = PartLayout.from_config(renamed, n_joints)
+    assert other.whole_stream == "body" and other.part_streams == ["upper", "lower"]
+    assert np.array_equal(other.index("upper"), layout.index("arms"))
+    assert other.stream_joints("lower") == layout.stream_joints("legs")
+    for bad in ({**cfg, "streams": ["arms", "legs"]},                          # no whole-vector stream
+                {**cfg, "streams": ["holistic", "all", "arms", "legs"]},       # two of them
+                {**cfg, "streams": ["holistic", "arms"]}):                     # legs not a stream
+        with pytest.raises(ValueError, match="exactly one stream"):
+            PartLayout.from_config(bad, n_joints)
+
+
 def test_merge_averages_disagreeing_copies(repo_root):
     cfg = yaml.safe_load((repo_root / "conf/dataset/parts/t2m.yaml").read_text())
     layout = PartLayout.from_config(cfg, 22)

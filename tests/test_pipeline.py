@@ -1,4 +1,5 @@
-"""End to end: the real `dvc repro` of the whole pipeline on `experiment=tiny`.
+"""End to end: the real `dvc repro` of the whole pipeline on every `conf/experiment/*.yaml`
+(today `experiment=tiny`), so a new experiment file is run through every stage, not only composed.
 
 Runs in a copy of the repository (tracked and untracked-not-ignored files), so
 the working tree's data/ and mlruns/ are untouched.
@@ -12,9 +13,15 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf/experiment").glob("*.yaml"))
+
+
+def test_there_are_experiments_to_run():
+    assert "tiny" in EXPERIMENTS
 
 
 def _sh(cmd, cwd, env, timeout=1500):
@@ -23,9 +30,9 @@ def _sh(cmd, cwd, env, timeout=1500):
     return res
 
 
-@pytest.fixture(scope="module")
-def pipeline(tmp_path_factory):
-    work = tmp_path_factory.mktemp("e2e") / "repo"
+@pytest.fixture(scope="module", params=EXPERIMENTS)
+def pipeline(request, tmp_path_factory):
+    work = tmp_path_factory.mktemp(f"e2e-{request.param}") / "repo"
     files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
                            cwd=ROOT, capture_output=True, text=True, check=True).stdout.split("\0")
     for rel in filter(None, files):
@@ -39,7 +46,7 @@ def pipeline(tmp_path_factory):
     _sh(["git", "init", "-q"], work, env)
     _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
     _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "snapshot"], work, env)
-    _sh([str(BIN / "party"), "params", "experiment=tiny"], work, env)
+    _sh([str(BIN / "party"), "params", f"experiment={request.param}"], work, env)
     repro = _sh([str(BIN / "dvc"), "repro"], work, env)
     return work, env, repro
 
@@ -47,12 +54,13 @@ def pipeline(tmp_path_factory):
 @pytest.mark.slow
 def test_dvc_repro_runs_every_stage(pipeline):
     work, env, repro = pipeline
-    for stage in ("prepare", "cache_part_texts", "embed_texts", "train_vqvae@holistic", "train_vqvae@arms",
-                  "train_vqvae@legs", "extract_tokens", "train_evaluator@holistic", "evaluate"):
+    streams = yaml.safe_load((work / "params.yaml").read_text())["dataset"]["parts"]["streams"]
+    for stage in ("prepare", "cache_part_texts", "embed_texts", *(f"train_vqvae@{s}" for s in streams),
+                  "extract_tokens", *(f"train_evaluator@{s}" for s in streams), "evaluate"):
         assert f"'{stage}'" in repro.stdout, stage
     assert (work / "data/prepared/index.json").exists()
     assert json.loads((work / "data/part_texts/part_texts.json").read_text())
-    for s in ("holistic", "arms", "legs"):
+    for s in streams:
         assert (work / f"data/tokenizers/{s}/model.pt").exists()
         assert (work / f"data/evaluators/{s}/finest.tar").exists()
     metrics = json.loads((work / "data/eval/metrics.json").read_text())

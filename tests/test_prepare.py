@@ -46,12 +46,16 @@ def test_prepare_real_layout_indexes_and_reports_rejections(tmp_path):
     assert not [p for p in prepared.parent.iterdir() if p.name.startswith(".")]   # no temp dirs left
 
 
-def test_prepare_failure_keeps_previous_output(tmp_path):
+def test_prepare_failure_keeps_previous_output(tmp_path, monkeypatch):
+    from party.config import load_params
+    from party.stages import prepare
+
     root = write_humanml3d_fixture(tmp_path / "H3D", {"train": ["000001"], "val": ["000002"],
                                                       "test": ["000003"]}, n_frames=60)
-    params = _params(tmp_path, ["dataset=humanml3d", f"dataset.root={root}",
-                                f"tracking.dir={tmp_path / 'mlruns'}"])
-    assert _run(tmp_path, params).returncode == 0
+    params = _params(tmp_path, ["dataset=humanml3d", f"dataset.root={root}", "tracking.enabled=false"])
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PARTY_NO_RENDER", "1")
+    prepare.run(load_params(params))              # the first run in-process; the failing one through the CLI
     before = (tmp_path / "data/prepared/index.json").read_bytes()
     (root / "Std.npy").write_bytes(b"garbage")
     res = _run(tmp_path, params)
@@ -65,6 +69,6 @@ def test_prepare_strict_stops_on_bad_file(tmp_path):
                                                       "test": ["000003"]}, n_frames=60)
     (root / "val.txt").write_text("000002\nmissing_one\n")
     params = _params(tmp_path, ["dataset=humanml3d", f"dataset.root={root}", "dataset.strict=true",
-                                f"tracking.dir={tmp_path / 'mlruns'}"])
+                                "tracking.enabled=false"])       # MLflow: see the test above
     res = _run(tmp_path, params)
     assert res.returncode != 0 and "missing_one.npy: file missing" in res.stderr

@@ -208,7 +208,8 @@ _WORKER = textwrap.dedent("""
     import sys
     from omegaconf import OmegaConf
     from party import tracking
-    cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "conc", "dir": sys.argv[1]},
+    cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "conc", "dir": sys.argv[1], "uri": None,
+                                         "parent_run_id": None, "log_system_metrics": False, "log_model": False},
                             "worker": int(sys.argv[2])})
     with tracking.start_run(cfg, "worker", tags={"worker": sys.argv[2]}) as run:
         for step in range(40):

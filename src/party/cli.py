@@ -6,37 +6,66 @@
     party params --check              fail if params.yaml is stale w.r.t. conf/
     party stages                      list the stages
 
-A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function; it
-runs as a Hydra app whose primary config is ``params.yaml`` (``$PARTY_PARAMS``
-selects another file), so value overrides, ``--multirun`` and Hydra launchers
-work, and what DVC composes is what the stage sees.
+A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function (built
+with ``party.stage.stage``); it runs as a Hydra app whose primary config is
+``params.yaml`` (``$PARTY_PARAMS`` selects another file), so value overrides,
+``--multirun`` and Hydra launchers work, and what DVC composes is what the stage sees.
+The app returns the stage's metrics dict, or the one number ``objective`` names
+(e.g. ``objective=val/mpjpe_mm``) for sweepers that optimise a float (Optuna).
+An override of a key that others were derived from when composing params.yaml is
+refused (``party.overrides``).
 """
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 import sys
 from pathlib import Path
 
 import party.stages as stages_pkg
 
+STAGE_ENV = "PARTY_STAGE"
+LAUNCHER = Path(__file__).resolve().parent / "launch" / "party_stage.py"
+
 
 def available_stages() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(stages_pkg.__path__) if not m.name.startswith("_"))
 
 
-def run_stage(stage: str, argv: list[str]) -> None:
+def objective_value(metrics, path: str) -> float:
+    """The number at ``path`` in a (nested) metrics dict: a key as is (``val/mpjpe_mm``),
+    else dotted segments (``results.ground_truth.holistic.fid.mean``)."""
+    if isinstance(metrics, dict) and path in metrics:
+        return float(metrics[path])
+    node = metrics
+    for part in path.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise KeyError(f"objective {path!r}: not in the stage's metrics "
+                           f"(top-level keys: {sorted(metrics) if isinstance(metrics, dict) else type(metrics)})")
+        node = node[part]
+    return float(node)
+
+
+def run_stage(stage: str, argv: list[str]):
     import hydra
 
     from party.config import params_path
+    from party.overrides import DivergingOverride, check_overrides
     mod = importlib.import_module(f"party.stages.{stage}")
     params = params_path()
     if not params.exists():
         sys.exit(f"party: {params} not found; run `party params` first (or set $PARTY_PARAMS)")
+    values = [a for a in argv if "=" in a and not a.startswith("-")]
+    try:
+        check_overrides([v for v in values if not v.startswith("hydra")], stage)
+    except DivergingOverride as e:
+        sys.exit(str(e))
 
     @hydra.main(version_base=None, config_path=str(params.parent), config_name=params.stem)
-    def app(cfg) -> None:
-        mod.run(cfg)
+    def app(cfg):
+        metrics = mod.run(cfg)
+        return objective_value(metrics, str(cfg.objective)) if cfg.objective else metrics
 
     defaults = [f"hydra.run.dir=outputs/{stage}/${{now:%Y-%m-%d_%H-%M-%S}}",
                 f"hydra.sweep.dir=multirun/{stage}/${{now:%Y-%m-%d_%H-%M-%S}}",
@@ -49,8 +78,10 @@ def run_stage(stage: str, argv: list[str]) -> None:
     flags = [a for a in argv if a not in overrides]
     given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     defaults = [d for d in defaults if d.split("=", 1)[0] not in given]
-    sys.argv = [f"party {stage}", *flags, *defaults, *overrides]
-    app()
+    # argv[0]: the script DDP child processes re-run (party/launch/party_stage.py)
+    os.environ[STAGE_ENV] = stage
+    sys.argv = [str(LAUNCHER), *flags, *defaults, *overrides]
+    return app()
 
 
 def cmd_params(argv: list[str]) -> int:
@@ -70,6 +101,15 @@ def cmd_params(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from party.schema import ConfigError
+    try:
+        return _main(argv)
+    except ConfigError as e:          # a wrong type or an unknown key: the message names it
+        print(f"party: {e}", file=sys.stderr)
+        return 2
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)

@@ -5,6 +5,11 @@
 ``dvc repro`` does not, so ``party params`` does the same composition and
 ``party params --check`` (run in the tests) fails when the committed file is stale.
 Every stage reads ``params.yaml``, never ``conf/`` directly.
+
+What is composed (``compose``, hence ``write_params`` and ``params_stale``) and what is
+read back (``load_params``) is checked against the typed schema (``party.schema``):
+a wrong type, an unknown or a missing key raises ``party.schema.ConfigError`` naming
+the dotted key, before anything is written.
 """
 from __future__ import annotations
 
@@ -24,7 +29,11 @@ def params_path() -> Path:
 
 def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf",
             config_name: str = "config") -> DictConfig:
-    """Compose ``conf/`` the way DVC's hydra integration does."""
+    """Compose ``conf/`` the way DVC's hydra integration does, validated against
+    ``party.schema`` (``ConfigError`` names the offending key). Returns Hydra's
+    config itself (interpolations unresolved), as before."""
+    from party.schema import validate
+
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -34,7 +43,9 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf",
         raise FileNotFoundError(f"{config_dir / config_name}.yaml not found")
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(config_dir), version_base=None):
-        return hydra_compose(config_name=config_name, overrides=list(overrides))
+        cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
+    validate(cfg, config_dir.name or str(config_dir))
+    return cfg
 
 
 def to_params(cfg: DictConfig) -> dict[str, Any]:
@@ -56,10 +67,12 @@ def write_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ()
 
 
 def load_params(path: str | Path | None = None) -> DictConfig:
+    """``params.yaml`` (or ``path``), validated against ``party.schema``."""
+    from party.schema import validate
     path = Path(path) if path else params_path()
     if not path.exists():
         raise FileNotFoundError(f"{path}: not found; run `party params` to compose it from conf/")
-    return OmegaConf.create(yaml.safe_load(path.read_text()))
+    return validate(yaml.safe_load(path.read_text()), path.name)
 
 
 def params_stale(path: str | Path = "params.yaml", config_dir: str | Path = "conf",
@@ -78,12 +91,3 @@ def params_stale(path: str | Path = "params.yaml", config_dir: str | Path = "con
     walk(want, have)
     return diffs
 
-
-def seed_everything(seed: int) -> None:
-    import random
-
-    import numpy as np
-    import torch
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)

@@ -2,6 +2,9 @@
 
 A crash or Ctrl-C mid-write leaves the previous file (or nothing), never a
 half-written file that a later stage would trust.
+
+Reading a stage's output: ``require`` and ``read_json`` name the file and the command that
+writes it (``party <stage>``) when it is missing or unreadable, so the error says what to rerun.
 """
 from __future__ import annotations
 
@@ -56,6 +59,25 @@ def write_text(path, text: str) -> None:
 
 def write_json(path, obj: Any, indent: int | None = 1) -> None:
     write_text(path, json.dumps(obj, indent=indent, sort_keys=False) + "\n")
+
+
+def require(path, produced_by: str, what: str = "") -> Path:
+    """``path`` as a Path; FileNotFoundError ``<path>: [<what> ]not found; run `<produced_by>` `` if absent."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: {what + ' ' if what else ''}not found; run `{produced_by}`")
+    return path
+
+
+def read_json(path, produced_by: str, what: str = "") -> Any:
+    """The JSON in ``path``, written by the command ``produced_by`` (e.g. ``"party prepare"``):
+    a missing file is a FileNotFoundError, a file that is not JSON a ValueError, both saying
+    to (re)run ``produced_by``."""
+    path = require(path, produced_by, what)
+    try:
+        return json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); rerun `{produced_by}`") from e
 
 
 def save_npy(path, array: np.ndarray) -> None:

@@ -41,7 +41,6 @@ from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
-DEFAULT_EXPERIMENT = "party"
 _RANK_VARS = ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK",
               "JSM_NAMESPACE_RANK")
 _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_\-. :/]")
@@ -49,9 +48,12 @@ _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_\-. :/]")
 
 # --------------------------------------------------------------------------- config
 
-def _tcfg(cfg: DictConfig | Mapping | None) -> Mapping:
-    t = None if cfg is None else cfg.get("tracking")
-    return t if t is not None else {}
+def _tcfg(cfg: DictConfig | Mapping) -> Mapping:
+    """The ``tracking`` group (conf/tracking/default.yaml holds every key and its value)."""
+    t = cfg.get("tracking") if cfg is not None else None
+    if t is None:
+        raise KeyError("config has no `tracking` group (conf/tracking/default.yaml)")
+    return t
 
 
 def project_root() -> Path:
@@ -60,7 +62,7 @@ def project_root() -> Path:
 
 
 def tracking_dir(cfg) -> Path:
-    d = Path(_tcfg(cfg).get("dir") or "mlruns")
+    d = Path(_tcfg(cfg)["dir"])
     return d if d.is_absolute() else project_root() / d
 
 
@@ -85,7 +87,7 @@ def tracking_uri(cfg) -> str:
     env = os.environ.get("MLFLOW_TRACKING_URI")
     if env:
         return env
-    uri = _tcfg(cfg).get("uri")
+    uri = _tcfg(cfg)["uri"]
     if uri:
         return str(uri)
     return f"sqlite:///{tracking_dir(cfg) / 'mlflow.db'}"
@@ -304,7 +306,7 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     """
     t = _tcfg(cfg)
     name = run_name or stage
-    if not t.get("enabled", True) or not is_rank_zero():
+    if not t["enabled"] or not is_rank_zero():
         yield NullRun(name)
         return
 
@@ -312,7 +314,7 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
 
     uri = tracking_uri(cfg)
     _set_tracking_uri(mlflow, uri)
-    exp_id = _experiment_id(t.get("experiment") or DEFAULT_EXPERIMENT, uri)
+    exp_id = _experiment_id(t["experiment"], uri)
     mlflow.set_experiment(experiment_id=exp_id)
 
     all_tags = {"party.stage": stage, **_git_state()}
@@ -323,13 +325,13 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     all_tags.update({k: str(v) for k, v in (tags or {}).items()})
     active = mlflow.active_run()
     # the configured parent (a sweep's run) applies to top-level runs of this process only
-    parent = parent_run_id or (t.get("parent_run_id") if active is None else None) or None
+    parent = parent_run_id or (t["parent_run_id"] if active is None else None) or None
     if parent and active is not None and active.info.run_id != parent:
         raise RuntimeError(f"start_run({stage!r}): parent_run_id {parent} is not the active "
                            f"run {active.info.run_id}")
     run = mlflow.start_run(experiment_id=exp_id, run_name=name, tags=all_tags,
                            parent_run_id=parent, nested=nested or active is not None and bool(parent),
-                           log_system_metrics=bool(t.get("log_system_metrics", False)))
+                           log_system_metrics=bool(t["log_system_metrics"]))
     run = _party_run_cls()(run)
     try:
         run.log_params(flatten_config(cfg))
@@ -373,9 +375,8 @@ def lightning_logger(cfg, run):
     if run_id is None or not is_rank_zero():
         return False
     t = _tcfg(cfg)
-    return _bound_logger_cls()(experiment_name=t.get("experiment") or DEFAULT_EXPERIMENT,
-                               tracking_uri=tracking_uri(cfg), run_id=run_id,
-                               log_model=t.get("log_model", False))
+    return _bound_logger_cls()(experiment_name=t["experiment"], tracking_uri=tracking_uri(cfg), run_id=run_id,
+                               log_model=t["log_model"])
 
 
 _LOGGER_CLS = None

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from helpers import rest_pose
+import yaml
 from omegaconf import OmegaConf
 
 from party.config import compose
@@ -128,7 +129,7 @@ def make_cfg(tmp: Path, data_root: Path, overrides=()) -> "OmegaConf":
     OmegaConf.set_struct(cfg, False)
     cfg.evaluator.model = TINY_MODEL
     cfg.evaluator.out_dir = str(tmp / "evaluators")
-    cfg.evaluator.log_mlflow = False
+    cfg.tracking.enabled = False
     cfg.evaluator.movement_pretrain.max_steps = 40
     cfg.evaluator.train.max_steps = 160
     cfg.evaluator.train.lr = 1e-3
@@ -136,7 +137,6 @@ def make_cfg(tmp: Path, data_root: Path, overrides=()) -> "OmegaConf":
     cfg.evaluator.trainer.num_workers = 0
     cfg.trainer.accelerator = "cpu"
     cfg.eval.out_dir = str(tmp / "eval")
-    cfg.eval.log_mlflow = False
     cfg.eval.replications = 3
     cfg.eval.diversity_times = 30
     cfg.eval.device = "cpu"
@@ -145,7 +145,7 @@ def make_cfg(tmp: Path, data_root: Path, overrides=()) -> "OmegaConf":
     cfg.eval.calibrate.out_dir = str(tmp / "calibration")
     for o in overrides:
         k, v = o.split("=", 1)
-        OmegaConf.update(cfg, k, OmegaConf.create({"v": v})["v"] if v[:1] not in "[{" else OmegaConf.create(v), merge=False)
+        OmegaConf.update(cfg, k, yaml.safe_load(v), merge=False)        # values typed as on the command line
     return cfg
 
 
@@ -218,7 +218,9 @@ def write_real_tokenizer(folder: Path, stream: str, ctx, width: int = 32) -> Pat
     from party.tokenizers import VQVAE, Tokenizer, save_tokenizer
     from party.tokenizers.config import stream_config
 
-    scfg = stream_config(OmegaConf.load(ROOT / "conf/vqvae/paper.yaml"), stream)
+    from party.config import compose
+
+    scfg = stream_config(compose(["vqvae=paper"], ROOT / "conf").vqvae, stream)
     scfg["model"].update(width=width, depth=1)
     idx = np.asarray(ctx.layout.index(stream))
     meta = {"stream": stream, "feat_dim": ctx.feat_dim, "n_joints": ctx.n_joints, "feat_index": idx.tolist(),

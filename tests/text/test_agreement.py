@@ -25,9 +25,10 @@ def _conf():
 
 
 def test_rules_agree_with_synthetic_ground_truth(small_synthetic, capsys):
-    rows = load_ground_truth(small_synthetic)
+    rules = RulesBackend()
+    rows = load_ground_truth(small_synthetic, rules.part_names)
     assert len(rows) >= 60 * 2 * 3 * 0.9                     # whole-clip captions of originals + mirrors
-    res = agreement(rows, RulesBackend().parts)
+    res = agreement(rows, rules.parts, rules.part_names)
     assert res["moves"] >= 0.95, res["disagree_moves"][:5]
     assert res["captions_naming_side"] >= 0.5 * len(rows)
     assert res["side"] >= 0.95, res["disagree_side"][:5]
@@ -41,7 +42,7 @@ def test_agreement_can_fail():
                                                          "legs": "The left leg kicks."}),
             ("m2", "a person waves the right hand.", {"arms": "The right arm waves.",
                                                       "legs": "No significant movement."})]
-    res = agreement(rows, lambda c: {"arms": "Both arms swing.", "legs": "Both legs walk."})
+    res = agreement(rows, lambda c: {"arms": "Both arms swing.", "legs": "Both legs walk."}, ["arms", "legs"])
     assert res["moves"] == 0 and res["side"] == 0
     assert part_side("The arms stay still, then the left arm waves.") == "left"
     assert part_side("The legs step sideways to the left.") == "both"

@@ -147,7 +147,7 @@ def test_changed_prompt_needs_new_prompt_version(tmp_path, fake_llm, monkeypatch
     cfg = openai_cfg(tmp_path, llm)
     cache_part_texts.run(cfg)
     import party.text.backends.openai as ob
-    monkeypatch.setattr(ob, "prompt_fingerprint", lambda: "changed12345")
+    monkeypatch.setattr(ob, "prompt_fingerprint", lambda parts: "changed12345")
     with pytest.raises(ValueError, match="prompt_version"):
         cache_part_texts.run(cfg)
     cfg.part_texts.prompt_version = "fig_s5-v2"

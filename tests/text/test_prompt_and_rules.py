@@ -6,17 +6,33 @@ import pytest
 
 from party.text.agreement import part_side
 from party.text.backends.rules import RulesBackend
-from party.text.prompt import FEW_SHOT, FormatError, build_messages, is_no_movement, parse_answer
+from party.text.prompt import FEW_SHOT, FormatError, build_messages, is_no_movement, parse_answer, prompt_fingerprint
+
+PARTS = ["arms", "legs"]          # conf/part_texts/*.yaml `parts`
 
 
 def test_messages_hold_the_five_examples_then_the_caption():
-    msgs = build_messages("a person claps.")
+    msgs = build_messages("a person claps.", PARTS)
     assert msgs[0]["role"] == "system" and "Arms:" in msgs[0]["content"]
     assert len(msgs) == 12 and msgs[-1]["role"] == "user" and "a person claps." in msgs[-1]["content"]
-    for k, (cap, arms, legs) in enumerate(FEW_SHOT):
+    for k, (cap, texts) in enumerate(FEW_SHOT):
         assert cap in msgs[1 + 2 * k]["content"]
-        assert msgs[2 + 2 * k]["content"] == f"Arms: {arms}\nLegs: {legs}"
-        assert parse_answer(msgs[2 + 2 * k]["content"])   # the examples pass our own check
+        assert msgs[2 + 2 * k]["content"] == f"Arms: {texts['arms']}\nLegs: {texts['legs']}"
+        assert parse_answer(msgs[2 + 2 * k]["content"], PARTS)   # the examples pass our own check
+
+
+def test_prompt_of_the_configured_parts_is_the_papers():
+    # the fingerprint keys the part-text cache: the prompt built from `parts` is the paper's, unchanged
+    assert prompt_fingerprint(PARTS) == "c50d759a186c"
+    assert prompt_fingerprint(["legs", "arms"]) != prompt_fingerprint(PARTS)
+    legs = build_messages("a person kicks.", ["legs"])
+    assert "exactly one line" in legs[0]["content"] and "Arms" not in legs[0]["content"]
+    assert legs[2]["content"] == f"Legs: {FEW_SHOT[0][1]['legs']}"
+    assert parse_answer("Legs: kick", ["legs"]) == {"legs": "kick"}
+    with pytest.raises(FormatError, match="unexpected line"):
+        parse_answer("Arms: wave\nLegs: kick", ["legs"])
+    with pytest.raises(ValueError, match="examples for"):
+        build_messages("x", ["arms", "torso"])
 
 
 @pytest.mark.parametrize("answer, arms, legs", [
@@ -27,7 +43,7 @@ def test_messages_hold_the_five_examples_then_the_caption():
     ("arms: up\nlegs: down", "up", "down"),
 ])
 def test_parse_valid(answer, arms, legs):
-    assert parse_answer(answer) == {"arms": arms, "legs": legs}
+    assert parse_answer(answer, PARTS) == {"arms": arms, "legs": legs}
 
 
 @pytest.mark.parametrize("answer, msg", [
@@ -37,21 +53,31 @@ def test_parse_valid(answer, arms, legs):
 ])
 def test_parse_invalid(answer, msg):
     with pytest.raises(FormatError, match=msg):
-        parse_answer(answer)
+        parse_answer(answer, PARTS)
 
 
 def test_extra_lines_switch():
-    assert parse_answer("Sure!\nArms: a\nLegs: b", allow_extra_lines=True) == {"arms": "a", "legs": "b"}
+    assert parse_answer("Sure!\nArms: a\nLegs: b", PARTS, allow_extra_lines=True) == {"arms": "a", "legs": "b"}
 
 
 def _labels(parts):
-    return tuple(x for p in ("arms", "legs") for x in (not is_no_movement(parts[p]), part_side(parts[p])))
+    return tuple(x for p in PARTS for x in (not is_no_movement(parts[p]), part_side(parts[p])))
 
 
 def test_rules_match_the_paper_examples():
     rules = RulesBackend()
-    for cap, arms, legs in FEW_SHOT:
-        assert _labels(rules.parts(cap)) == _labels({"arms": arms, "legs": legs}), cap
+    for cap, texts in FEW_SHOT:
+        assert _labels(rules.parts(cap)) == _labels(texts), cap
+
+
+def test_rules_write_the_configured_parts():
+    from omegaconf import OmegaConf
+    cap = FEW_SHOT[1][0]
+    both = RulesBackend(OmegaConf.create({"parts": PARTS})).parts(cap)
+    assert list(both) == PARTS and both == RulesBackend().parts(cap)
+    assert RulesBackend(OmegaConf.create({"parts": ["legs"]})).parts(cap) == {"legs": both["legs"]}
+    with pytest.raises(ValueError, match="knows the parts"):
+        RulesBackend(OmegaConf.create({"parts": ["torso"]}))
 
 
 # (caption, arms moves, arms side, legs move, legs side); side None = not named / not moving

@@ -2,6 +2,8 @@
 OpenAI-compatible chat-completions server on 127.0.0.1 (a real HTTP server in a thread)."""
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import re
 import threading
@@ -27,15 +29,18 @@ def write_index(root: Path, captions_per_clip: list[list[str]]) -> Path:
     return path
 
 
+@functools.lru_cache(maxsize=None)
+def _composed(part_texts: str, text: str) -> dict:
+    from party.config import compose
+    cfg = compose([f"part_texts={part_texts}", f"text={text}", "progress=false", "tracking.enabled=false"],
+                  REPO / "conf")
+    return OmegaConf.to_container(cfg, resolve=False)          # interpolations kept: paths set below
+
+
 def stage_cfg(tmp_path: Path, part_texts: str = "rules", text: str = "minilm", **overrides):
-    """Full stage config: conf/part_texts/<part_texts>.yaml + conf/text/<text>.yaml, paths in tmp."""
-    cfg = OmegaConf.create({
-        "progress": False,
-        "tracking": {"enabled": False},
-        "paths": {"prepared": str(tmp_path / "prepared")},
-        "part_texts": OmegaConf.load(REPO / f"conf/part_texts/{part_texts}.yaml"),
-        "text": OmegaConf.load(REPO / f"conf/text/{text}.yaml"),
-    })
+    """Full stage config (conf/ composed with part_texts=<part_texts>, text=<text>), outputs in tmp."""
+    cfg = OmegaConf.create(copy.deepcopy(_composed(part_texts, text)))
+    cfg.paths.prepared = str(tmp_path / "prepared")
     cfg.part_texts.out_dir = str(tmp_path / "part_texts")
     cfg.part_texts.cache_path = str(tmp_path / "cache" / "part_texts.sqlite")
     cfg.text.embeddings_dir = str(tmp_path / "embeddings")

@@ -89,17 +89,13 @@ def write_tiny_dataset(root: Path, n_motions: int = 12, seed: int = 0, min_T: in
 
 
 def tiny_cfg(tmp: Path, prepared: Path, **over):
-    vq = OmegaConf.load(CONF / "vqvae" / "paper.yaml")
-    cfg = OmegaConf.create({
-        "seed": 0, "progress": False,
-        "paths": {"prepared": str(prepared)},
-        "dataset": {"parts": OmegaConf.to_container(OmegaConf.load(CONF / "dataset" / "parts" / "t2m.yaml"))},
-        "tracking": {"enabled": False},
-        "trainer": {"accelerator": "cpu", "devices": 1, "num_nodes": 1, "strategy": "auto",
-                    "precision": "32-true", "num_workers": 0, "pin_memory": False,
-                    "log_every_n_steps": 1, "deterministic": False},
-        "vqvae": vq,
-    })
+    """The composed config (conf/, vqvae=paper) with tiny tokenizers over ``prepared``."""
+    from party.config import compose
+
+    cfg = compose(["vqvae=paper", "trainer=cpu", "seed=0", "progress=false", "tracking.enabled=false",
+                   f"paths.prepared={prepared}", "trainer.num_workers=0", "trainer.pin_memory=false",
+                   "trainer.log_every_n_steps=1"], CONF)
+    cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     small = {"vqvae.out_dir": str(tmp / "tokenizers"), "vqvae.tokens_dir": str(tmp / "tokens"),
              "vqvae.resume_dir": str(tmp / "ckpt"),
              "vqvae.model.width": 16, "vqvae.model.depth": 1, "vqvae.model.code_dim": 8,
@@ -111,7 +107,7 @@ def tiny_cfg(tmp: Path, prepared: Path, **over):
              "vqvae.tokenizers.legs.codebook_size": 8, "vqvae.tokenizers.legs.code_dim": 8,
              "vqvae.tokenizers.legs.window": 6,
              "vqvae.train.max_steps": 4, "vqvae.train.batch_size": 4, "vqvae.train.crop": 24,
-             "vqvae.train.val_every": 2, "vqvae.train.ckpt_every": 2, "vqvae.train.val_batch_size": 4,
+             "vqvae.train.val_every": 2, "vqvae.train.ckpt_every": 2,
              "vqvae.train.render_samples": 0, "vqvae.train.threads": 1, **over}
     cfg.merge_with(OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
     return cfg

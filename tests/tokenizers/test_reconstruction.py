@@ -45,7 +45,7 @@ def recipe_cfg(tmp, prepared, **over):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    from party.stages.train_vqvae import train_tokenizer
+    from party.tokenizers.train import train_tokenizer
     tmp = tmp_path_factory.mktemp("recon")
     prepared = write_recon_dataset(tmp)
     cfg = recipe_cfg(tmp, prepared)

@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from party.stages import extract_tokens, vq_ablation
-from party.stages.train_vqvae import train_tokenizer
+from party.data.context import load_stream_data
 from party.tokenizers.config import stream_config
-from party.tokenizers.data import (BucketDataset, bucket_loader, decode_sequences, eval_sequences,
-                                   load_stream_data)
+from party.tokenizers.data import BucketDataset, bucket_loader, decode_sequences, eval_sequences
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.tokens import TokenStore
+from party.tokenizers.train import train_tokenizer
 from party.tokenizers.vqvae import load_tokenizer
 
 from conftest import tiny_cfg, write_tiny_dataset
@@ -96,7 +96,7 @@ def test_tokens_decode_to_what_validation_saw(trained):
         assert set(clip_ids) <= set(store.names())                         # mirrors + timed clips
         assert any(k.startswith("M") for k in store.names()) and "000000#4-28" in store
         assert len(store.get("000000#4-28")) == 24 // tok.window
-        lit = VQVAELit(tok, stream_config(cfg.vqvae, stream))
+        lit = VQVAELit(tok, stream_config(cfg.vqvae, stream), cfg.vqvae.metrics)
         lit.keep_outputs = True
         seqs, keys = eval_sequences(data, "val")
         loader = bucket_loader(BucketDataset(seqs, keys, tok.window, "crop", int(cfg.vqvae.eval.batch_size)))
@@ -119,7 +119,7 @@ def test_validation_metrics_ignore_filler_rows(trained):
     seqs, keys = eval_sequences(data, "val")
     res = []
     for bs in (2, 5, 64):
-        lit = VQVAELit(tok, stream_config(cfg.vqvae, "holistic"))
+        lit = VQVAELit(tok, stream_config(cfg.vqvae, "holistic"), cfg.vqvae.metrics)
         L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False
                   ).validate(lit, bucket_loader(BucketDataset(seqs, keys, tok.window, "crop", bs)), verbose=False)
         res.append(lit.val_results)

@@ -5,9 +5,10 @@ the dataset through it, so a real dataset is validated once.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from party.io import read_json
 
 INDEX_VERSION = 1
 
@@ -49,12 +50,7 @@ def load_index(path: str | Path) -> Index:
     path = Path(path)
     if path.is_dir():
         path = path / "index.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: prepared index not found; run `party prepare` first")
-    try:
-        obj = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e}); rerun `party prepare`") from e
+    obj = read_json(path, "party prepare", what="prepared index")
     if obj.get("version") != INDEX_VERSION:
         raise ValueError(f"{path}: index version {obj.get('version')} != {INDEX_VERSION}; rerun `party prepare`")
     root = obj["root"]

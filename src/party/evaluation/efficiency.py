@@ -1,4 +1,4 @@
-"""Parameter counts and average inference time (AIT) per sample (paper Tab. 4)."""
+"""Average inference time (AIT) per sample (paper Tab. 4); parameter counts: ``party.training.count_params``."""
 
 from __future__ import annotations
 
@@ -7,10 +7,6 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
-
-
-def count_params(module: torch.nn.Module, trainable_only: bool = False) -> int:
-    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
 
 
 def _sync() -> None:

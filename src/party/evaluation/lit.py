@@ -33,14 +33,14 @@ def contrastive_loss(a: torch.Tensor, b: torch.Tensor, negative: bool, margin: f
 class MovementAELit(L.LightningModule):
     def __init__(self, ev: Evaluator, lr: float, lambda_sparsity: float, lambda_smooth: float):
         super().__init__()
-        self.ev = ev
-        m = ev.movement_encoder
+        # only the trained part is a submodule: DDP sees no unused parameters
+        self.movement_encoder = m = ev.movement_encoder
         self.decoder = MovementConvDecoder(m.out_net.out_features, m.main[0].out_channels, m.main[0].in_channels)
         self.lr, self.l_sp, self.l_sm = lr, lambda_sparsity, lambda_smooth
 
     def _loss(self, batch) -> dict[str, torch.Tensor]:
         x = batch["window"]  # (B, W, D_in), normalised, channel-selected
-        z = self.ev.movement_encoder(x)
+        z = self.movement_encoder(x)
         rec = F.l1_loss(self.decoder(z), x)
         sp = z.abs().mean()
         sm = F.l1_loss(z[:, 1:], z[:, :-1])
@@ -56,7 +56,7 @@ class MovementAELit(L.LightningModule):
         self.log_dict({f"movement_ae/val_{k}": v for k, v in out.items()}, batch_size=len(batch["window"]))
 
     def configure_optimizers(self):
-        params = list(self.ev.movement_encoder.parameters()) + list(self.decoder.parameters())
+        params = list(self.movement_encoder.parameters()) + list(self.decoder.parameters())
         return torch.optim.Adam(params, lr=self.lr)
 
 

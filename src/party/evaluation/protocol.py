@@ -131,15 +131,15 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                  progress: bool = True) -> dict[str, dict[str, dict]]:
     """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}}}"""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
-    coh = cfg.get("coherence", {})
-    scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh.get("enabled", True) and parts is not None else None
+    coh = cfg["coherence"]
+    scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
     for ss in tqdm(seeds, desc="replications", disable=not progress):
         rng = np.random.default_rng(ss)
         gt = gt_src.draw(rng)
         gt_ref = gt_src.draw(rng)
         sets: dict[str, tuple[MotionSet, list[str], bool]] = {}
-        if cfg["sources"].get("ground_truth", True):
+        if cfg["sources"]["ground_truth"]:
             sets["ground_truth"] = (gt, list(embedders), True)
         for stream, src in tokenizers.items():
             rec = src.reconstruct(gt)
@@ -158,7 +158,7 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             for name, (ms, _, full_body) in sets.items():
                 if full_body:
                     rows[name]["coherence"].append(scorer(ms))
-    z = float(cfg.get("ci_z", 1.96))
+    z = float(cfg["ci_z"])
     order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
     out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
     if "holistic" in embedders:
@@ -179,7 +179,7 @@ def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int,
     from party.motion import recover_from_ric
 
     stream = rec.extra.get("stream", "holistic")
-    scale = float(cfg.get("mpjpe_scale", 1000.0))
+    scale = float(cfg["mpjpe_scale"])
     err_local = err_global = 0.0
     count = 0
     for g_full, r_full in zip(gt.feats, rec.feats, strict=True):

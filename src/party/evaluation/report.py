@@ -1,8 +1,13 @@
-"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5."""
+"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5.
+
+The stream names come from the caller (``dataset.parts.streams``, see ``PartLayout``): Table 1
+reads the whole-body stream's evaluator (``whole_stream``), Table 2 the part streams'
+(``part_streams``). Table 5's switch columns are those the generated runs declare.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 SOURCE_LABELS = {"ground_truth": "Real motion"}
 
@@ -28,17 +33,17 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows])
 
 
-def table1(results: Mapping, large: int = 256) -> str:
+def table1(results: Mapping, whole_stream: str, large: int = 256) -> str:
     rows, rows_b = [], []
     for src, d in results.items():
-        h = d.get("holistic")
+        h = d.get(whole_stream)
         if not h:
             continue
         rows.append([label(src)] + [fmt(h.get(k)) for k in ("top1", "top2", "top3", "fid", "mm_dist", "diversity",
                                                              "multimodality")])
         if f"top1_b{large}" in h:
             rows_b.append([label(src)] + [fmt(h.get(f"top{k}_b{large}")) for k in (1, 2, 3)])
-    out = "### Table 1: standard metrics (holistic evaluator, R-Precision with 32 candidates)\n\n" + _table(
+    out = f"### Table 1: standard metrics ({whole_stream} evaluator, R-Precision with 32 candidates)\n\n" + _table(
         ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓", "Diversity →", "MultiModality ↑"], rows)
     if rows_b:
         out += f"\n\n### R-Precision with B = {large} candidates (HumanTOMATO protocol)\n\n" + _table(
@@ -46,15 +51,16 @@ def table1(results: Mapping, large: int = 256) -> str:
     return out
 
 
-def table2(results: Mapping) -> str:
+def table2(results: Mapping, part_streams: Sequence[str]) -> str:
     rows = []
     for src, d in results.items():
-        for part in ("arms", "legs"):
+        for part in part_streams:
             if part in d:
                 p = d[part]
                 rows.append([label(src), part.capitalize()]
                             + [fmt(p.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
-    return "### Table 2: part-level metrics (Arms / Legs evaluators)\n\n" + _table(
+    names = " / ".join(p.capitalize() for p in part_streams)
+    return f"### Table 2: part-level metrics ({names} evaluators)\n\n" + _table(
         ["Method", "Part", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
 
 
@@ -82,15 +88,21 @@ def table4(results: Mapping, efficiency: Mapping) -> str:
                                        rows))
 
 
-def table5(results: Mapping, switches: Mapping[str, Mapping]) -> str:
+def switch_names(switches: Mapping[str, Mapping]) -> list[str]:
+    """Every switch the runs declare (``{run: {switch: bool}}``), in first-seen order."""
+    return list(dict.fromkeys(k for sw in switches.values() for k in sw))
+
+
+def table5(results: Mapping, switches: Mapping[str, Mapping], whole_stream: str) -> str:
+    names = switch_names(switches)
     rows = []
     for src, sw in switches.items():
-        h = results.get(src, {}).get("holistic")
+        h = results.get(src, {}).get(whole_stream)
         if h:
-            rows.append([src] + ["✓" if sw.get(k) else "" for k in ("pg", "ptg", "hpf")]
+            rows.append([src] + ["✓" if sw.get(k) else "" for k in names]
                         + [fmt(h.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
     return "### Table 5: ablation of the proposed components\n\n" + _table(
-        ["Run", "PG", "PTG", "HPF", "Top 1 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
+        ["Run", *(k.upper() for k in names), "Top 1 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
 
 
 def efficiency_table(efficiency: Mapping) -> str:
@@ -103,12 +115,15 @@ def efficiency_table(efficiency: Mapping) -> str:
         ["Model", "# Params", "AIT"], rows)
 
 
-def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str = "", large: int = 256) -> str:
-    parts = [header, table1(results, large), table2(results), table3(results)]
+def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str = "", large: int = 256, *,
+           whole_stream: str, part_streams: Sequence[str]) -> str:
+    """All tables. ``whole_stream`` / ``part_streams``: ``PartLayout.whole_stream`` /
+    ``.part_streams`` of ``dataset.parts``."""
+    parts = [header, table1(results, whole_stream, large), table2(results, part_streams), table3(results)]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))
     if switches:
-        parts.append(table5(results, switches))
+        parts.append(table5(results, switches, whole_stream))
     parts.append(efficiency_table(efficiency))
     return "\n\n".join(p for p in parts if p) + "\n"
 

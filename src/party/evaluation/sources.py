@@ -34,7 +34,8 @@ import numpy as np
 import torch
 
 from party.data import TextMotionDataset
-from party.evaluation.context import DataContext
+from party.data.context import DataContext
+from party.tokenizers.protocol import Codec, Tokenizer
 
 log = logging.getLogger(__name__)
 
@@ -93,30 +94,34 @@ class TokenizerSource:
     """Reconstruction of ground truth through a tokenizer (``encode`` -> ``decode``) for one stream.
 
     Works in raw units: the stream's channels are normalised with the
-    tokenizer's own statistics when it has ``normalize``/``denormalize``
-    (``party.tokenizers.Tokenizer``), else with the dataset's. Part streams:
-    the reconstructed stream channels replace the ground truth's in the full
-    vector, so the stream's evaluator reads the reconstruction. Clips are
-    cropped to a multiple of the tokenizer window and batched by length (no
-    padding reaches the tokenizer).
+    tokenizer's own statistics for a ``party.tokenizers.protocol.Tokenizer``
+    (any family; codes (B, n) or (B, n, Q)), with the dataset's for a bare
+    ``protocol.Codec``. Part streams: the reconstructed stream channels replace
+    the ground truth's in the full vector, so the stream's evaluator reads the
+    reconstruction. Clips are cropped to a multiple of the tokenizer window and
+    batched by length (no padding reaches the tokenizer).
     """
 
-    def __init__(self, tokenizer, stream: str, ctx: DataContext, device: torch.device, batch_size: int = 64):
+    def __init__(self, tokenizer: Tokenizer | Codec, stream: str, ctx: DataContext, device: torch.device,
+                 batch_size: int = 64):
         self.tok, self.stream, self.ctx, self.device = tokenizer, stream, ctx, device
         self.batch_size = batch_size
         self.idx = np.asarray(ctx.layout.index(stream))
-        own = getattr(tokenizer, "feat_index", None)
-        if own is not None and not np.array_equal(np.asarray(own.cpu() if hasattr(own, "cpu") else own), self.idx):
+        self.own_stats = isinstance(tokenizer, Tokenizer)
+        if not self.own_stats and not isinstance(tokenizer, Codec):
+            raise TypeError(f"{stream}: {type(tokenizer).__qualname__} is neither a "
+                            "party.tokenizers.protocol.Tokenizer nor a Codec")
+        if self.own_stats and not np.array_equal(np.asarray(tokenizer.meta["feat_index"]), self.idx):
             raise ValueError(f"{stream} tokenizer reads other feature channels than dataset.parts' {stream} stream")
-        self.window = int(getattr(tokenizer, "window", 1) or 1)
+        self.window = int(tokenizer.window)
 
     def _norm(self, raw_s: torch.Tensor) -> torch.Tensor:
-        if hasattr(self.tok, "normalize"):
+        if self.own_stats:
             return self.tok.normalize(raw_s.to(self.device))
         return self.ctx.normalizer.norm(raw_s, idx=self.idx).to(self.device)
 
     def _denorm(self, x: torch.Tensor) -> torch.Tensor:
-        if hasattr(self.tok, "denormalize"):
+        if self.own_stats:
             return self.tok.denormalize(x).float().cpu()
         return self.ctx.normalizer.denorm(x.float().cpu(), idx=self.idx)
 
@@ -151,7 +156,9 @@ class TokenizerSource:
                 for f in gt.feats[:n] if len(f) >= self.window]
 
     def n_params(self) -> int:
-        return sum(p.numel() for p in self.tok.parameters()) if hasattr(self.tok, "parameters") else 0
+        if self.own_stats:
+            return int(self.tok.n_params())
+        return sum(p.numel() for p in self.tok.parameters()) if isinstance(self.tok, torch.nn.Module) else 0
 
 
 def find_tokenizer(folder: Path, name: str | None) -> Path | None:
@@ -169,9 +176,8 @@ def load_tokenizer_source(ckpt: Path, stream: str, ctx: DataContext, device: tor
         raise ImportError(f"{ckpt}: a tokenizer checkpoint exists but party.tokenizers.load_tokenizer "
                           f"is not available ({e})") from e
     tok = load_tokenizer(ckpt)
-    if hasattr(tok, "to"):
+    if isinstance(tok, (Tokenizer, torch.nn.Module)):
         tok = tok.to(device)
-    if hasattr(tok, "eval"):
         tok.eval()
     return TokenizerSource(tok, stream, ctx, device)
 

@@ -1,14 +1,16 @@
 """Body-part views of the feature vector (SPEC §0, ParCo's split).
 
 A *part* (root, left/right leg, backbone, left/right arm) and a *stream*
-(holistic, arms, legs) are both index lists into the D-dim feature vector:
+(``dataset.parts.streams``: holistic, arms, legs) are both index lists into the
+D-dim feature vector:
 
 - root: root data (4) + local velocity of joint 0 (3);
 - a limb/backbone part: per joint ric (3) + rot6d (6) + local vel (3), plus the
   part's foot contacts for a leg;
-- stream ``holistic`` is the whole vector; ``arms``/``legs`` are the root part
-  followed by the union of their parts' features (a joint shared by two parts,
-  such as spine3 in both arms, appears once).
+- a part stream (one with members in ``dataset.parts.stream_parts``: arms, legs)
+  is the root part followed by the union of its parts' features (a joint shared
+  by two parts, such as spine3 in both arms, appears once); the one stream with
+  no members there (holistic) is the whole vector.
 
 ``merge`` is the exact inverse of slicing: overlapping copies (joint 9 in three
 parts, the root in both part streams) are averaged, which leaves identical
@@ -23,8 +25,7 @@ import torch
 
 from party.motion.features import feature_slices
 
-PARTS = ("root", "right_leg", "left_leg", "backbone", "right_arm", "left_arm")
-STREAMS = ("holistic", "arms", "legs")
+ROOT = "root"       # the implicit part: root data + joint-0 velocity, in every part stream
 
 
 def _joint_feature_idx(j: int, n_joints: int) -> list[int]:
@@ -40,16 +41,16 @@ def _joint_feature_idx(j: int, n_joints: int) -> list[int]:
 class PartLayout:
     """Index tables for parts, streams and coherence parts of one skeleton."""
 
-    def __init__(self, n_joints: int, parts: Mapping[str, Mapping], streams: Mapping[str, Sequence[str]],
-                 coherence: Mapping[str, Sequence[int]]):
+    def __init__(self, n_joints: int, parts: Mapping[str, Mapping], streams: Sequence[str],
+                 stream_parts: Mapping[str, Sequence[str]], coherence: Mapping[str, Sequence[int]]):
         self.n_joints = n_joints
         self.feat_dim = 12 * n_joints - 1
         sl = feature_slices(n_joints)
         contacts = {"left": [sl.contacts.start, sl.contacts.start + 1],
                     "right": [sl.contacts.start + 2, sl.contacts.start + 3]}
-        self.part_joints: dict[str, list[int]] = {"root": [0]}
+        self.part_joints: dict[str, list[int]] = {ROOT: [0]}
         self.part_index: dict[str, np.ndarray] = {
-            "root": np.array(list(range(sl.root.start, sl.root.stop)) + _joint_feature_idx(0, n_joints))}
+            ROOT: np.array(list(range(sl.root.start, sl.root.stop)) + _joint_feature_idx(0, n_joints))}
         for name, spec in parts.items():
             joints = [int(j) for j in spec["joints"]]
             idx = [i for j in joints for i in _joint_feature_idx(j, n_joints)]
@@ -60,11 +61,24 @@ class PartLayout:
         covered = np.unique(np.concatenate(list(self.part_index.values())))
         if len(covered) != self.feat_dim:
             raise ValueError(f"part table covers {len(covered)} of {self.feat_dim} feature channels")
-        self.stream_parts = {"holistic": list(self.part_index)}
-        self.stream_index: dict[str, np.ndarray] = {"holistic": np.arange(self.feat_dim)}
-        self._stream_joints: dict[str, list[int]] = {"holistic": list(range(n_joints))}
-        for name, members in streams.items():
-            members = ["root"] + [m for m in members if m != "root"]
+        self.streams = [str(s) for s in streams]
+        stray = [s for s in stream_parts if s not in self.streams]
+        whole = [s for s in self.streams if s not in stream_parts]
+        if stray or len(whole) != 1 or len(set(self.streams)) != len(self.streams):
+            raise ValueError(f"streams {self.streams} / stream_parts {list(stream_parts)}: every stream_parts "
+                             "entry must be a stream, and exactly one stream (the whole vector) has none")
+        self.whole_stream = whole[0]
+        self.part_streams = [s for s in self.streams if s in stream_parts]
+        self.stream_parts: dict[str, list[str]] = {}
+        self.stream_index: dict[str, np.ndarray] = {}
+        self._stream_joints: dict[str, list[int]] = {}
+        for name in self.streams:
+            if name == self.whole_stream:
+                self.stream_parts[name] = list(self.part_index)
+                self.stream_index[name] = np.arange(self.feat_dim)
+                self._stream_joints[name] = list(range(n_joints))
+                continue
+            members = [ROOT] + [m for m in stream_parts[name] if m != ROOT]
             idx = list(dict.fromkeys(i for m in members for i in self.part_index[m].tolist()))
             self.stream_parts[name] = members
             self.stream_index[name] = np.array(idx)
@@ -73,7 +87,9 @@ class PartLayout:
 
     @classmethod
     def from_config(cls, parts_cfg: Mapping, n_joints: int) -> "PartLayout":
-        return cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["coherence"])
+        """From ``dataset.parts`` (``parts``, ``streams``, ``stream_parts``, ``coherence``)."""
+        return cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["stream_parts"],
+                   parts_cfg["coherence"])
 
     # ------------------------------------------------------------------ slicing
     def index(self, name: str) -> np.ndarray:
@@ -97,8 +113,9 @@ class PartLayout:
             return x[..., torch.as_tensor(idx, device=x.device)]
         return x[..., idx]
 
-    def split(self, x, names: Sequence[str] = PARTS) -> dict:
-        return {n: self.slice(x, n) for n in names}
+    def split(self, x, names: Sequence[str] | None = None) -> dict:
+        """Slices of ``names`` (default: every part, the root first)."""
+        return {n: self.slice(x, n) for n in (self.part_index if names is None else names)}
 
     def merge(self, pieces: Mapping, base=None):
         """Scatter part/stream slices back into full vectors; overlaps averaged.

@@ -10,11 +10,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from party.data.index import load_index
-from party.tracking import start_run
 from party.io import atomic_dir, write_json
+from party.stage import stage
 from party.text.backends import build_backend
 from party.text.backends.base import BackendError
 from party.text.cache import PartTextCache, fill_part_texts
@@ -24,35 +24,35 @@ COUNTS = ("captions", "hits", "misses", "calls", "retries", "format_failures", "
           "fallbacks_new", "request_failures", "seconds")
 
 
-def run(cfg: DictConfig) -> dict:
+@stage("cache_part_texts")
+def run(cfg: DictConfig, run_) -> dict:
     pcfg = cfg.part_texts
     index = load_index(pcfg.index_path)
     captions = index.captions()
     if not captions:
         raise ValueError(f"{index.path}: the index has no captions")
     backend = build_backend(pcfg)
-    progress = bool(OmegaConf.select(cfg, "progress", default=True))
-    with start_run(cfg, "cache_part_texts") as run_:
-        cache = PartTextCache(pcfg.cache_path)
-        try:
-            results, stats = fill_part_texts(captions, backend, cache, pcfg, progress=progress)
-        finally:
-            cache.close()
-        summary = {k: stats[k] for k in COUNTS}
-        print("cache_part_texts: " + ", ".join(f"{k}={v}" for k, v in summary.items()))
-        run_.log_metrics({f"part_texts/{k}": v for k, v in summary.items()})
-        if stats["request_failures"] and pcfg.get("request_failure", "error") != "fallback":
-            raise BackendError(
-                f"{stats['request_failures']} captions got no answer after {pcfg.get('max_retries')} "
-                f"retries (e.g. {next(iter(stats['request_failed_captions'].items()))}); the other "
-                f"answers are cached in {pcfg.cache_path}: rerun to resume, or set "
-                f"part_texts.request_failure=fallback")
-        out = Path(pcfg.out_dir)
-        with atomic_dir(out) as tmp:                   # both files or neither
-            write_json(tmp / "part_texts.json", {c: results[c] for c in captions})
-            write_json(tmp / "stats.json", stats)
-        run_.log_json({k: stats[k] for k in (*COUNTS, "backend", "model", "prompt_version")},
-                      "part_texts/stats.json")
-        log.info("wrote %s (%d captions)", out / "part_texts.json", len(captions))
+    progress = cfg.progress
+    cache = PartTextCache(pcfg.cache_path)
+    try:
+        results, stats = fill_part_texts(captions, backend, cache, pcfg, progress=progress)
+    finally:
+        cache.close()
+    summary = {k: stats[k] for k in COUNTS}
+    print("cache_part_texts: " + ", ".join(f"{k}={v}" for k, v in summary.items()))
+    run_.log_metrics({f"part_texts/{k}": v for k, v in summary.items()})
+    if stats["request_failures"] and pcfg.request_failure != "fallback":
+        raise BackendError(
+            f"{stats['request_failures']} captions got no answer after {pcfg.max_retries} "
+            f"retries (e.g. {next(iter(stats['request_failed_captions'].items()))}); the other "
+            f"answers are cached in {pcfg.cache_path}: rerun to resume, or set "
+            f"part_texts.request_failure=fallback")
+    out = Path(pcfg.out_dir)
+    with atomic_dir(out) as tmp:                   # both files or neither
+        write_json(tmp / "part_texts.json", {c: results[c] for c in captions})
+        write_json(tmp / "stats.json", stats)
+    run_.log_json({k: stats[k] for k in (*COUNTS, "backend", "model", "prompt_version")},
+                  "part_texts/stats.json")
+    log.info("wrote %s (%d captions)", out / "part_texts.json", len(captions))
     return stats
 

@@ -6,6 +6,8 @@ one entry per clip of the prepared index (all splits; mirrors are motions of
 their own in the index) and one per whole motion file. Sequences are encoded
 whole, in batches of equal token count (no padding between sequences), in eval
 mode, so the output is deterministic and equals what validation decoded.
+Any tokenizer family works (``party.tokenizers.protocol.Tokenizer``); a family with
+Q > 1 code levels per token writes a store of ``levels`` = Q, codes (N, Q).
 """
 from __future__ import annotations
 
@@ -17,10 +19,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from party import tracking
-from party.tokenizers.data import BucketDataset, load_stream_data
+from party.stage import stage
+from party.data.context import load_stream_data
+from party.tokenizers.data import BucketDataset
+from party.tokenizers.protocol import Tokenizer, valid_groups
 from party.tokenizers.tokens import write_token_store
-from party.tokenizers.vqvae import Tokenizer, load_tokenizer
+from party.tokenizers.vqvae import load_tokenizer
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +36,8 @@ def _check(tok: Tokenizer, data, path: Path) -> None:
                          f"{m['stream']}) and does not match the prepared index {data.index.path}; "
                          "rerun `party train_vqvae`")
     stats = data.stats()
-    if not (np.allclose(tok.mean.numpy(), stats[0]) and np.allclose(tok.std.numpy(), stats[1])):
+    mean, std = (t.detach().cpu().numpy() for t in tok.stats())
+    if not (np.allclose(mean, stats[0]) and np.allclose(std, stats[1])):
         raise ValueError(f"{path}: tokenizer normalisation differs from {data.index.root}/Mean.npy, Std.npy; "
                          "rerun `party train_vqvae`")
 
@@ -52,7 +57,9 @@ def spans(index) -> tuple[list[tuple[str, int, int | None]], dict[str, int]]:
 
 @torch.no_grad()
 def tokenize_stream(tok: Tokenizer, data, batch_size: int, progress: bool = True):
-    """Returns (entries, codes per entry, keys)."""
+    """Returns (entries, codes per entry ((n,) or (n, Q)), keys)."""
+    if not isinstance(tok, Tokenizer):
+        raise TypeError(f"{type(tok).__qualname__} does not satisfy party.tokenizers.protocol.Tokenizer")
     tok.eval()
     span_list, keys = spans(data.index)
     feats: dict[str, torch.Tensor] = {}
@@ -66,42 +73,43 @@ def tokenize_stream(tok: Tokenizer, data, batch_size: int, progress: bool = True
         seqs.append(full[start:end])
         entries.append({"motion": motion, "start": start, "end": end})
     labels = [str(i) for i in range(len(seqs))]
-    ds = BucketDataset(seqs, labels, tok.window, tok.model.tail, batch_size)
+    ds = BucketDataset(seqs, labels, tok.window, tok.tail, batch_size)
     if ds.skipped:
         raise ValueError(f"{data.index.path}: {len(ds.skipped)} spans are shorter than the window "
                          f"{tok.window}, e.g. {entries[int(ds.skipped[0])]}")
     codes: list[np.ndarray | None] = [None] * len(seqs)
     for b in tqdm(range(len(ds)), desc=f"tokens {data.stream}", disable=not progress, unit="batch"):
         item = ds[b]
-        x = item["x"].to(tok.mean.device)
-        idx_b, node_mask = tok.model.encode(x, item["mask"].to(x.device))   # rows past keys: filler
+        x = item["x"].to(tok.device)
+        idx_b = tok.encode(x, item["mask"].to(x.device))   # rows past keys: filler
+        node_mask = valid_groups(idx_b)
         for k, lab in enumerate(item["keys"]):
             codes[int(lab)] = idx_b[k, node_mask[k]].cpu().numpy()
     return entries, codes, keys
 
 
-def run(cfg) -> dict:
+@stage("extract_tokens")
+def run(cfg, run_) -> dict:
     vq = cfg.vqvae
     out_root = Path(vq.tokens_dir)
     summary = {}
-    with tracking.start_run(cfg, "extract_tokens"):
-        for stream in vq.streams:
-            t0 = time.time()
-            path = Path(vq.out_dir) / stream
-            tok = load_tokenizer(path)
-            if tok.meta["stream"] != stream:
-                raise ValueError(f"{path}: holds the {tok.meta['stream']!r} tokenizer, expected {stream!r}")
-            data = load_stream_data(cfg, stream)
-            _check(tok, data, path)
-            entries, codes, keys = tokenize_stream(tok, data, int(vq.eval.batch_size),
-                                                   bool(cfg.get("progress", True)))
-            meta = {"stream": stream, "window": tok.window, "tail": tok.model.tail,
-                    "codebook_size": tok.model.quantizer.n_codes, "dataset": data.index.dataset,
-                    "tokenizer": str(path / "model.pt")}
-            meta = write_token_store(out_root / stream, zip(entries, codes), keys, meta)
-            used = len(np.unique(np.concatenate(codes))) if codes else 0
-            summary[stream] = {"entries": meta["n_entries"], "keys": len(keys), "codes": meta["n_codes_total"],
-                               "codes_used": used, "seconds": round(time.time() - t0, 2)}
-            tracking.log_metrics({f"{stream}.{k}": v for k, v in summary[stream].items()})
-            print(f"extract_tokens[{stream}]: {summary[stream]}")
+    for stream in vq.streams:
+        t0 = time.time()
+        path = Path(vq.out_dir) / stream
+        tok = load_tokenizer(path)
+        if tok.meta["stream"] != stream:
+            raise ValueError(f"{path}: holds the {tok.meta['stream']!r} tokenizer, expected {stream!r}")
+        data = load_stream_data(cfg, stream)
+        _check(tok, data, path)
+        entries, codes, keys = tokenize_stream(tok, data, vq.eval.batch_size,
+                                               cfg.progress)
+        meta = {"stream": stream, "window": tok.window, "tail": tok.tail,
+                "codebook_size": tok.codebook_size, "levels": tok.levels, "family": tok.family,
+                "dataset": data.index.dataset, "tokenizer": str(path / "model.pt")}
+        meta = write_token_store(out_root / stream, zip(entries, codes), keys, meta)
+        used = len(np.unique(np.concatenate(codes))) if codes else 0
+        summary[stream] = {"entries": meta["n_entries"], "keys": len(keys), "codes": meta["n_codes_total"],
+                           "codes_used": used, "seconds": round(time.time() - t0, 2)}
+        run_.log_metrics({f"{stream}.{k}": v for k, v in summary[stream].items()})
+        print(f"extract_tokens[{stream}]: {summary[stream]}")
     return summary

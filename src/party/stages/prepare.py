@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 from party.data.humanml3d import DatasetError, load_mean_std, scan_dataset
 from party.data.index import INDEX_VERSION
 from party.io import atomic_dir, write_json
+from party.stage import stage
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +52,8 @@ def build_index(cfg: DictConfig, out_dir: Path, data_root: Path, root_in_index: 
     }
 
 
-def run(cfg: DictConfig) -> dict:
-    from party import tracking
+@stage("prepare")
+def run(cfg: DictConfig, run_) -> dict:
     out = Path(cfg.paths.prepared)
     t0 = time.time()
     with atomic_dir(out) as tmp:
@@ -75,24 +76,23 @@ def run(cfg: DictConfig) -> dict:
     log.info("prepared %s: %s, %d rejected, %.1fs", cfg.dataset.name, manifest["counts"],
              manifest["n_rejected"], manifest["seconds"])
     print(f"prepare: {manifest['counts']} rejected={manifest['n_rejected']} in {manifest['seconds']}s")
-    with tracking.start_run(cfg, "prepare") as run:
-        run.log_metrics({f"{split}.{k}": v for split, c in manifest["counts"].items() for k, v in c.items()}
-                        | {"rejected": manifest["n_rejected"], "seconds": manifest["seconds"]})
-        tracking.log_file(out / "manifest.json")
-        _log_samples(cfg, out)
+    run_.log_metrics({f"{split}.{k}": v for split, c in manifest["counts"].items() for k, v in c.items()}
+                     | {"rejected": manifest["n_rejected"], "seconds": manifest["seconds"]})
+    run_.log_file(out / "manifest.json")
+    if run_.info.run_id:
+        _log_samples(cfg, out, run_)
     return manifest
 
 
-def _log_samples(cfg: DictConfig, prepared: Path) -> None:
+def _log_samples(cfg: DictConfig, prepared: Path, run_) -> None:
     """Render a few clips (first clips of the train split) and log them as artifacts."""
-    n = int(cfg.tracking.get("n_render_samples", 0))
+    n = cfg.tracking.n_render_samples
     if n <= 0 or os.environ.get("PARTY_NO_RENDER"):
         return
     import tempfile
 
     import numpy as np
 
-    from party import tracking
     from party.data import load_index
     from party.data.datasets import MotionStore
     from party.motion.features import recover_from_ric_np
@@ -106,4 +106,4 @@ def _log_samples(cfg: DictConfig, prepared: Path) -> None:
             path = Path(tmp) / f"{c['id'].replace('#', '_')}.gif"
             render_motion(np.asarray(joints), path, skeleton_name=index.skeleton, fps=index.fps,
                           title=c["captions"][0]["caption"])
-            tracking.log_file(path, "samples")
+            run_.log_file(path, "samples")

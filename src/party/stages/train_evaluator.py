@@ -24,11 +24,15 @@ from torch.utils.data import DataLoader
 
 from party.data import TextMotionDataset, WindowDataset, collate_text_motion
 from party.evaluation.checkpoint import evaluator_meta, save_evaluator
-from party.evaluation.context import cfg_get, load_context, log_metrics_flat, stream_channels, tracking_run
+from party import tracking
+from party.data.context import load_context
+from party.evaluation.context import log_metrics_flat, stream_channels
 from party.evaluation.evaluator import Evaluator
 from party.evaluation.metrics import matching_score, r_precision
 from party.evaluation.text_input import ContextualTokens, WordVectorizer, build_word_table, vocabulary
 from party.io import atomic_dir, write_json, write_text
+from party.stage import stage
+from party.training import build_trainer, count_params
 
 log = logging.getLogger(__name__)
 
@@ -36,14 +40,14 @@ log = logging.getLogger(__name__)
 def build_featurizer(cfg: DictConfig, index, mode: str, max_text_len: int):
     """-> (featurizer, width of its word features, extra checkpoint meta)."""
     if mode == "glove":
-        glove = cfg_get(cfg, "evaluator.glove_dir")
+        glove = cfg.evaluator.glove_dir
         if not glove:
             raise ValueError("evaluator.text_input=glove needs evaluator.glove_dir (our_vab_data.npy, ...)")
         f = WordVectorizer.from_glove(glove, max_text_len=max_text_len)
         return f, f.dim, {"glove_dir": str(Path(glove).resolve())}
     from party.text.encoders import build_text_encoder
 
-    if cfg_get(cfg, "text") is None:
+    if cfg.get("text") is None:
         raise ValueError(f"evaluator.text_input={mode} needs the text encoder config group `text`")
     enc = build_text_encoder(cfg.text)
     if mode == "words":
@@ -52,7 +56,7 @@ def build_featurizer(cfg: DictConfig, index, mode: str, max_text_len: int):
         f = WordVectorizer(words, build_word_table(enc, words), max_text_len)
         return f, f.dim, {"text_encoder_id": getattr(enc, "id", None)}
     if mode == "tokens":
-        max_tokens = cfg_get(cfg, "evaluator.max_text_tokens")
+        max_tokens = cfg.evaluator.max_text_tokens
         f = ContextualTokens(enc, max_tokens)
         dim = f(["a person walks"])[0].shape[-1]
         return f, dim, {"text_in_dim": int(dim), "max_tokens": max_tokens,
@@ -61,19 +65,13 @@ def build_featurizer(cfg: DictConfig, index, mode: str, max_text_len: int):
     raise ValueError(f"evaluator.text_input must be words|tokens|glove, got {mode!r}")
 
 
-def _trainer(cfg: DictConfig, logger, max_steps: int, max_epochs: int, val_every: int) -> L.Trainer:
-    tr = cfg_get(cfg, "evaluator.trainer", {})
-    return L.Trainer(
-        accelerator=cfg_get(cfg, "trainer.accelerator", "auto"), devices=1,  # small models: one device
-        precision=tr.get("precision", "32-true"), max_steps=max_steps, max_epochs=max_epochs,
-        logger=logger or False, enable_checkpointing=False, enable_model_summary=False,
-        enable_progress_bar=bool(cfg_get(cfg, "progress", True)), num_sanity_val_steps=0,
-        check_val_every_n_epoch=val_every, log_every_n_steps=int(cfg_get(cfg, "trainer.log_every_n_steps", 10)),
-    )  # fmt: skip
+def _trainer(cfg: DictConfig, logger, max_steps: int, max_epochs: int, val_every: int):
+    return build_trainer(cfg, max_steps=max_steps, logger=logger, section=cfg.evaluator.trainer,
+                         max_epochs=max_epochs, check_val_every_n_epoch=val_every)
 
 
 def _loader(ds, batch_size: int, shuffle: bool, collate, cfg, drop_last: bool) -> DataLoader:
-    workers = int(cfg_get(cfg, "evaluator.trainer.num_workers", 0))
+    workers = cfg.evaluator.trainer.num_workers
     return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, collate_fn=collate, drop_last=drop_last,
                       num_workers=workers, persistent_workers=workers > 0)
 
@@ -95,72 +93,74 @@ def test_retrieval(ev: Evaluator, ds: TextMotionDataset, batch_size: int, seed: 
     return out
 
 
-def run(cfg: DictConfig) -> dict:
+@stage("train_evaluator", run_name=lambda cfg: f"train_evaluator-{cfg.evaluator.stream}",
+       tags=lambda cfg: {"party.stream": cfg.evaluator.stream})
+def run(cfg: DictConfig, run_) -> dict:
     ec = cfg.evaluator
-    stream = str(ec.stream)
-    if stream not in ("holistic", "arms", "legs"):
-        raise ValueError(f"evaluator.stream must be holistic|arms|legs, got {stream!r}")
-    seed = int(cfg_get(cfg, "seed", 0))
+    stream = ec.stream
+    streams = list(cfg.dataset.parts.streams)
+    if stream not in streams:
+        raise ValueError(f"evaluator.stream must be one of {streams} (dataset.parts.streams), got {stream!r}")
+    seed = cfg.seed
     L.seed_everything(seed, workers=True, verbose=False)
     ctx = load_context(cfg)
-    channels = stream_channels(ctx.layout, stream, ctx.feat_dim, bool(ec.drop_contacts))
-    feat, text_in, extra = build_featurizer(cfg, ctx.index, str(ec.text_input), int(ec.max_text_len))
+    channels = stream_channels(ctx.layout, stream, ctx.feat_dim, ec.drop_contacts)
+    feat, text_in, extra = build_featurizer(cfg, ctx.index, ec.text_input, ec.max_text_len)
     dims = OmegaConf.to_container(ec.model, resolve=True)
     ev = Evaluator(channels, ctx.normalizer.mean, ctx.normalizer.std, feat, text_in_dim=text_in,
-                   unit_length=int(ec.unit_length), stream=stream, pad_to=int(ec.max_motion_len), **dims)
-    bank_tr = ctx.bank("train", int(ec.unit_length))
-    bank_va = ctx.bank(str(ec.val_split), int(ec.unit_length))
-    mk = dict(max_len=int(ec.max_motion_len), unit_len=int(ec.unit_length))
+                   unit_length=ec.unit_length, stream=stream, pad_to=ec.max_motion_len, **dims)
+    bank_tr = ctx.bank("train", ec.unit_length)
+    bank_va = ctx.bank(ec.val_split, ec.unit_length)
+    mk = dict(max_len=ec.max_motion_len, unit_len=ec.unit_length)
     train_ds = TextMotionDataset(ctx.index, ctx.store, "train", ctx.normalizer, bank=bank_tr, **mk)
-    val_ds = TextMotionDataset(ctx.index, ctx.store, str(ec.val_split), ctx.normalizer, bank=bank_va, **mk)
+    val_ds = TextMotionDataset(ctx.index, ctx.store, ec.val_split, ctx.normalizer, bank=bank_va, **mk)
     t0 = time.time()
-    with tracking_run(cfg, "train_evaluator", bool(ec.log_mlflow)) as run_:
-        from party import tracking
+    logger = tracking.lightning_logger(cfg, run_)
+    pre = ec.movement_pretrain
+    if pre.enabled:
+        ch = torch.as_tensor(channels)
 
-        logger = tracking.lightning_logger(cfg, run_)
-        pre = ec.movement_pretrain
-        if pre.enabled:
-            ch = torch.as_tensor(channels)
+        def collate_windows(items):
+            return {"window": torch.stack(items)[..., ch]}
 
-            def collate_windows(items):
-                return {"window": torch.stack(items)[..., ch]}
+        w = pre.window
+        wtr = WindowDataset(ctx.index, ctx.store, "train", w, ctx.normalizer, bank=bank_tr)
+        wva = WindowDataset(ctx.index, ctx.store, ec.val_split, w, ctx.normalizer, bank=bank_va,
+                            random_crop=False)
+        from party.evaluation.lit import MovementAELit
 
-            w = int(pre.window)
-            wtr = WindowDataset(ctx.index, ctx.store, "train", w, ctx.normalizer, bank=bank_tr)
-            wva = WindowDataset(ctx.index, ctx.store, str(ec.val_split), w, ctx.normalizer, bank=bank_va,
-                                random_crop=False)
-            from party.evaluation.lit import MovementAELit
+        ae = MovementAELit(ev, pre.lr, pre.lambda_sparsity, pre.lambda_smooth)
+        _trainer(cfg, logger, pre.max_steps, pre.max_epochs, pre.val_every_n_epochs).fit(
+            ae, _loader(wtr, pre.batch_size, True, collate_windows, cfg, True),
+            _loader(wva, pre.batch_size, False, collate_windows, cfg, False))
+    from party.evaluation.lit import MatchLit
 
-            ae = MovementAELit(ev, float(pre.lr), float(pre.lambda_sparsity), float(pre.lambda_smooth))
-            _trainer(cfg, logger, int(pre.max_steps), int(pre.max_epochs), int(pre.val_every_n_epochs)).fit(
-                ae, _loader(wtr, int(pre.batch_size), True, collate_windows, cfg, True),
-                _loader(wva, int(pre.batch_size), False, collate_windows, cfg, False))
-        from party.evaluation.lit import MatchLit
-
-        tc = ec.train
-        lit = MatchLit(ev, float(tc.lr), float(tc.negative_margin), float(tc.grad_clip), bool(ec.freeze_movement),
-                       int(tc.batch_size), seed)
-        _trainer(cfg, logger, int(tc.max_steps), int(tc.max_epochs), int(tc.val_every_n_epochs)).fit(
-            lit, _loader(train_ds, int(tc.batch_size), True, collate_text_motion, cfg, True),
-            _loader(val_ds, int(tc.batch_size), False, collate_text_motion, cfg, False))
-        if lit.best is not None:
-            ev.load_state_dict(lit.best["state"])
-        ev.cpu().eval()
-        test_split = str(ec.test_split)
-        test_ds = TextMotionDataset(ctx.index, ctx.store, test_split, ctx.normalizer,
-                                    bank=ctx.bank(test_split, int(ec.unit_length)), **mk)
-        metrics = {"stream": stream, "train_seconds": round(time.time() - t0, 1),
-                   "best": {k: v for k, v in (lit.best or {}).items() if k != "state"},
-                   f"{test_split}_gt": test_retrieval(ev, test_ds, int(tc.batch_size), seed),
-                   "chance_top1": 1.0 / int(tc.batch_size), "params": sum(p.numel() for p in ev.parameters())}
-        run_.log_metrics({f"evaluator/{stream}/{k}": v for k, v in log_metrics_flat(metrics).items()})
-        run_.log_json(metrics, f"evaluator_{stream}_metrics.json")
-        meta = evaluator_meta(ev, str(ec.text_input), dims, int(ec.max_text_len), extra)
-        out = Path(ec.out_dir) / stream
-        with atomic_dir(out) as tmp:
-            best = lit.best or {"epoch": 0, "iter": 0}
-            save_evaluator(tmp / "finest.tar", ev, meta, best["epoch"], best["iter"])
-            write_json(tmp / "metrics.json", metrics)
-            write_text(tmp / "evaluator.yaml", OmegaConf.to_yaml(ec, resolve=True))
+    tc = ec.train
+    lit = MatchLit(ev, tc.lr, tc.negative_margin, tc.grad_clip, ec.freeze_movement,
+                   tc.batch_size, seed)
+    _trainer(cfg, logger, tc.max_steps, tc.max_epochs, tc.val_every_n_epochs).fit(
+        lit, _loader(train_ds, tc.batch_size, True, collate_text_motion, cfg, True),
+        _loader(val_ds, tc.batch_size, False, collate_text_motion, cfg, False))
+    if lit.best is not None:
+        ev.load_state_dict(lit.best["state"])
+    ev.cpu().eval()
+    test_split = ec.test_split
+    test_ds = TextMotionDataset(ctx.index, ctx.store, test_split, ctx.normalizer,
+                                bank=ctx.bank(test_split, ec.unit_length), **mk)
+    metrics = {"stream": stream, "train_seconds": round(time.time() - t0, 1),
+               "best": {k: v for k, v in (lit.best or {}).items() if k != "state"},
+               f"{test_split}_gt": test_retrieval(ev, test_ds, tc.batch_size, seed),
+               "chance_top1": 1.0 / tc.batch_size, "params": count_params(ev)}
+    run_.log_metrics({f"evaluator/{stream}/{k}": v for k, v in log_metrics_flat(metrics).items()})
+    run_.log_json(metrics, f"evaluator_{stream}_metrics.json")
+    meta = evaluator_meta(ev, ec.text_input, dims, ec.max_text_len, extra)
+    out = Path(ec.out_dir) / stream
+    if not tracking.is_rank_zero():       # under DDP only rank zero writes the outputs
+        return metrics
+    with atomic_dir(out) as tmp:
+        best = lit.best or {"epoch": 0, "iter": 0}
+        save_evaluator(tmp / "finest.tar", ev, meta, best["epoch"], best["iter"])
+        write_json(tmp / "metrics.json", metrics)
+        write_text(tmp / "evaluator.yaml", OmegaConf.to_yaml(ec, resolve=True))
     log.info("evaluator %s: %s", stream, json.dumps(metrics[f"{test_split}_gt"]))
     return metrics

@@ -12,40 +12,32 @@ from __future__ import annotations
 
 import json
 import logging
-import sqlite3
 import threading
 import time
+from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from tqdm import tqdm
 
+from party.io import read_json
+from party.sqlite import SQLiteCache, select_in
 from party.text.backends.base import BackendError, PartTextResult
 
 log = logging.getLogger(__name__)
-PARTS = ("arms", "legs")
 
 
-class PartTextCache:
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            self.db = sqlite3.connect(self.path)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=NORMAL")
-            with self.db:
-                self.db.execute(
-                    "CREATE TABLE IF NOT EXISTS part_texts (backend TEXT NOT NULL, model TEXT NOT NULL, "
-                    "prompt_version TEXT NOT NULL, caption TEXT NOT NULL, parts TEXT NOT NULL, "
-                    "fallback INTEGER NOT NULL, reason TEXT, attempts INTEGER, raw TEXT, created REAL, "
-                    "PRIMARY KEY (backend, model, prompt_version, caption))")
-                self.db.execute(
-                    "CREATE TABLE IF NOT EXISTS prompts (backend TEXT NOT NULL, model TEXT NOT NULL, "
-                    "prompt_version TEXT NOT NULL, fingerprint TEXT NOT NULL, "
-                    "PRIMARY KEY (backend, model, prompt_version))")
-        except sqlite3.DatabaseError as e:
-            raise sqlite3.DatabaseError(f"{self.path}: not a usable part-text cache ({e})") from e
+class PartTextCache(SQLiteCache):
+    kind = "part-text cache"
+    schema = (
+        "CREATE TABLE IF NOT EXISTS part_texts (backend TEXT NOT NULL, model TEXT NOT NULL, "
+        "prompt_version TEXT NOT NULL, caption TEXT NOT NULL, parts TEXT NOT NULL, "
+        "fallback INTEGER NOT NULL, reason TEXT, attempts INTEGER, raw TEXT, created REAL, "
+        "PRIMARY KEY (backend, model, prompt_version, caption))",
+        "CREATE TABLE IF NOT EXISTS prompts (backend TEXT NOT NULL, model TEXT NOT NULL, "
+        "prompt_version TEXT NOT NULL, fingerprint TEXT NOT NULL, "
+        "PRIMARY KEY (backend, model, prompt_version))",
+    )
 
     def check_prompt(self, backend: str, model: str, prompt_version: str, fingerprint: str) -> None:
         """Refuse a prompt whose text changed while ``prompt_version`` did not."""
@@ -58,21 +50,20 @@ class PartTextCache:
             raise ValueError(f"{self.path}: the prompt for prompt_version={prompt_version!r} changed "
                              f"(fingerprint {row[0]} -> {fingerprint}); set a new part_texts.prompt_version")
 
-    def get_many(self, backend: str, model: str, prompt_version: str, captions: list[str]) -> dict[str, dict]:
-        """caption -> {"parts", "fallback", "reason"} for valid stored rows."""
+    def get_many(self, backend: str, model: str, prompt_version: str, captions: list[str],
+                 parts: Sequence[str]) -> dict[str, dict]:
+        """caption -> {"parts", "fallback", "reason"} for stored rows with a non-empty text for
+        every part of ``parts``."""
         out = {}
-        chunk = 400
-        for i in range(0, len(captions), chunk):
-            part = captions[i:i + chunk]
-            q = (f"SELECT caption, parts, fallback, reason FROM part_texts WHERE backend=? AND model=? "
-                 f"AND prompt_version=? AND caption IN ({','.join('?' * len(part))})")
-            for cap, parts, fb, reason in self.db.execute(q, [backend, model, prompt_version, *part]):
-                try:
-                    p = json.loads(parts)
-                    if all(isinstance(p.get(k), str) and p[k] for k in PARTS):
-                        out[cap] = {"parts": {k: p[k] for k in PARTS}, "fallback": bool(fb), "reason": reason}
-                except (ValueError, AttributeError):
-                    pass                                       # unreadable row: asked again
+        q = ("SELECT caption, parts, fallback, reason FROM part_texts WHERE backend=? AND model=? "
+             "AND prompt_version=? AND caption IN ({})")
+        for cap, texts, fb, reason in select_in(self.db, q, [backend, model, prompt_version], captions, 400):
+            try:
+                p = json.loads(texts)
+                if all(isinstance(p.get(k), str) and p[k] for k in parts):
+                    out[cap] = {"parts": {k: p[k] for k in parts}, "fallback": bool(fb), "reason": reason}
+            except (ValueError, AttributeError):
+                pass                                       # unreadable row: asked again
         return out
 
     def put(self, backend: str, model: str, prompt_version: str, caption: str, res: PartTextResult) -> None:
@@ -84,18 +75,15 @@ class PartTextCache:
     def count(self) -> int:
         return self.db.execute("SELECT COUNT(*) FROM part_texts").fetchone()[0]
 
-    def close(self) -> None:
-        self.db.close()
-
 
 def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
                     progress: bool = True) -> tuple[dict[str, dict], dict]:
     """Part texts for every caption (cache first, then the backend). Returns
-    (caption -> {"arms", "legs"}, stats)."""
+    (caption -> {part: text} for the parts ``cfg.parts``, stats)."""
     captions = list(dict.fromkeys(c for c in captions))
     pv = str(cfg.prompt_version)
     cache.check_prompt(backend.name, backend.model, pv, backend.fingerprint)
-    cached = cache.get_many(backend.name, backend.model, pv, captions)
+    cached = cache.get_many(backend.name, backend.model, pv, captions, [str(p) for p in cfg.parts])
     if bool(cfg.get("retry_fallbacks", False)):
         cached = {c: r for c, r in cached.items() if not r["fallback"]}
     results = {c: r["parts"] for c, r in cached.items()}
@@ -184,18 +172,17 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
     return results, stats
 
 
-def load_part_texts(path: str | Path) -> dict[str, dict]:
-    """{caption: {"arms", "legs"}} as written by `party cache_part_texts`, validated."""
+def load_part_texts(path: str | Path, parts: Sequence[str] | None = None) -> dict[str, dict]:
+    """{caption: {part: text}} as written by `party cache_part_texts`, validated: every entry holds
+    a non-empty text for each of ``parts`` (``part_texts.parts``; None: the first entry's parts)."""
     path = Path(path)
     if path.is_dir():
         path = path / "part_texts.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: not found; run `party cache_part_texts`")
-    try:
-        obj = json.loads(path.read_text())
-    except ValueError as e:
-        raise ValueError(f"{path}: not valid JSON ({e}); rerun `party cache_part_texts`") from e
-    for cap, parts in obj.items():
-        if not (isinstance(parts, dict) and all(isinstance(parts.get(k), str) and parts[k] for k in ("arms", "legs"))):
-            raise ValueError(f"{path}: entry for caption {cap!r} lacks non-empty 'arms'/'legs' texts")
+    obj = read_json(path, "party cache_part_texts")
+    for cap, texts in obj.items():
+        if parts is None and isinstance(texts, dict):
+            parts = list(texts)                        # the first entry's parts, for every entry
+        if not (isinstance(texts, dict) and parts and all(isinstance(texts.get(k), str) and texts[k] for k in parts)):
+            names = "/".join(repr(str(k)) for k in parts) if parts else "part"
+            raise ValueError(f"{path}: entry for caption {cap!r} lacks non-empty {names} texts")
     return obj

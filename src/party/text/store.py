@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sqlite3
 from pathlib import Path
 
 import numpy as np
 
-from party.io import atomic_dir, write_json
+from party.io import atomic_dir, read_json, require, write_json
+from party.sqlite import SQLiteCache, select_in
 
 
 def text_key(text: str) -> str:
@@ -59,14 +59,11 @@ class EmbeddingStore:
                 cur = path / "current.json"
                 if not cur.exists():
                     raise FileNotFoundError(f"{path}: no meta.json or current.json; run `party embed_texts`")
-                encoder_id = json.loads(cur.read_text())["encoder_id"]
+                encoder_id = read_json(cur, "party embed_texts")["encoder_id"]
             path = path / encoder_id
-        for name in ("meta.json", "keys.json", "embeddings.npy"):
-            if not (path / name).exists():
-                raise FileNotFoundError(f"{path / name}: missing; run `party embed_texts`")
-        meta = json.loads((path / "meta.json").read_text())
-        keys = json.loads((path / "keys.json").read_text())
-        vectors = np.load(path / "embeddings.npy", mmap_mode="r")
+        meta = read_json(path / "meta.json", "party embed_texts")
+        keys = read_json(path / "keys.json", "party embed_texts")
+        vectors = np.load(require(path / "embeddings.npy", "party embed_texts"), mmap_mode="r")
         if encoder_id is not None and meta.get("encoder_id") != encoder_id:
             raise ValueError(f"{path}: holds encoder {meta.get('encoder_id')!r}, expected {encoder_id!r}")
         if vectors.ndim != 2 or len(keys["sha1"]) != vectors.shape[0] or len(keys["text"]) != vectors.shape[0]:
@@ -105,35 +102,22 @@ class EmbeddingStore:
         return path
 
 
-class EmbeddingCache:
+class EmbeddingCache(SQLiteCache):
     """Persistent (encoder_id, sha1) -> vector cache in SQLite (WAL, one commit per batch)."""
 
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            self.db = sqlite3.connect(self.path)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=NORMAL")
-            self.db.execute("CREATE TABLE IF NOT EXISTS embeddings (encoder_id TEXT NOT NULL, "
-                            "sha1 TEXT NOT NULL, dim INTEGER NOT NULL, vec BLOB NOT NULL, "
-                            "PRIMARY KEY (encoder_id, sha1))")
-            self.db.commit()
-        except sqlite3.DatabaseError as e:
-            raise sqlite3.DatabaseError(f"{self.path}: not a usable embedding cache ({e}); "
-                                        "delete it to rebuild") from e
+    kind = "embedding cache"
+    hint = "; delete it to rebuild"
+    schema = ("CREATE TABLE IF NOT EXISTS embeddings (encoder_id TEXT NOT NULL, "
+              "sha1 TEXT NOT NULL, dim INTEGER NOT NULL, vec BLOB NOT NULL, "
+              "PRIMARY KEY (encoder_id, sha1))",)
 
     def get_many(self, encoder_id: str, keys: list[str], dim: int | None = None) -> dict[str, np.ndarray]:
         found: dict[str, np.ndarray] = {}
-        chunk = 500                                  # SQLite host-parameter limit is 999+
-        for i in range(0, len(keys), chunk):
-            part = keys[i:i + chunk]
-            q = (f"SELECT sha1, dim, vec FROM embeddings WHERE encoder_id=? AND sha1 IN "
-                 f"({','.join('?' * len(part))})")
-            for sha, d, blob in self.db.execute(q, [encoder_id, *part]):
-                v = np.frombuffer(blob, dtype=np.float32)
-                if v.size == d and (dim is None or d == dim):   # anything else is treated as missing
-                    found[sha] = v
+        q = "SELECT sha1, dim, vec FROM embeddings WHERE encoder_id=? AND sha1 IN ({})"
+        for sha, d, blob in select_in(self.db, q, [encoder_id], keys, 500):   # SQLite host-parameter limit is 999+
+            v = np.frombuffer(blob, dtype=np.float32)
+            if v.size == d and (dim is None or d == dim):   # anything else is treated as missing
+                found[sha] = v
         return found
 
     def put_many(self, encoder_id: str, keys: list[str], vectors: np.ndarray) -> None:
@@ -147,11 +131,3 @@ class EmbeddingCache:
             return self.db.execute("SELECT COUNT(*) FROM embeddings").fetchone()[0]
         return self.db.execute("SELECT COUNT(*) FROM embeddings WHERE encoder_id=?", (encoder_id,)).fetchone()[0]
 
-    def close(self) -> None:
-        self.db.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

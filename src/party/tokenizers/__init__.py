@@ -4,11 +4,20 @@
     tok = load_tokenizer("data/tokenizers/holistic")        # model.pt, folder or last.ckpt
     codes = TokenStore.open("data/tokens/holistic").get("000021")
     feats = tok.detokenize(codes)                            # raw (n*w, D) features
+
+The method family is ``vqvae.model.family`` (``temporal_vq``; ``build_tokenizer``,
+``register_family``); ``TokenizerProtocol`` (``party.tokenizers.protocol.Tokenizer``)
+is what extraction and evaluation use of any family.
 """
+from party.tokenizers.protocol import Codec, TokenizerModel
+from party.tokenizers.protocol import Tokenizer as TokenizerProtocol
 from party.tokenizers.quantizer import EMAQuantizer
 from party.tokenizers.temporal import GlobalTemporalEnhancement, LocalTemporalEnhancement
 from party.tokenizers.tokens import TokenStore, write_token_store
-from party.tokenizers.vqvae import VQVAE, Tokenizer, count_parameters, load_tokenizer, save_tokenizer
+from party.tokenizers.vqvae import (FAMILIES, VQVAE, Tokenizer, build_model, build_tokenizer,
+                                    family_class, load_tokenizer, register_family, save_tokenizer)
 
 __all__ = ["EMAQuantizer", "GlobalTemporalEnhancement", "LocalTemporalEnhancement", "TokenStore",
-           "write_token_store", "VQVAE", "Tokenizer", "count_parameters", "load_tokenizer", "save_tokenizer"]
+           "write_token_store", "VQVAE", "Tokenizer", "load_tokenizer", "save_tokenizer",
+           "FAMILIES", "build_model", "build_tokenizer", "family_class", "register_family",
+           "Codec", "TokenizerModel", "TokenizerProtocol"]

@@ -6,8 +6,6 @@ and may carry a ``train`` block that overrides ``vqvae.train`` for that stream.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
@@ -46,19 +44,10 @@ _RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "render_samples", "lo
                    "num_workers", "threads", "resume", "log_every"}
 
 
-def _numbers_as_floats(x):
-    """``0`` and ``0.0`` (a command-line ``key=0`` against a config's ``0.0``) hash alike."""
-    if isinstance(x, Mapping):
-        return {k: _numbers_as_floats(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_numbers_as_floats(v) for v in x]
-    return float(x) if isinstance(x, int) and not isinstance(x, bool) else x
-
-
 def resume_key(scfg: dict, extra: Mapping[str, Any]) -> str:
     """Short hash of everything that makes two training runs the same run."""
+    from party.training import config_key
+
     train = {k: v for k, v in scfg["train"].items() if k not in _RESUME_IGNORES}
-    blob = json.dumps(_numbers_as_floats({"model": scfg["model"], "loss": scfg["loss"],
-                                          "optim": scfg["optim"], "train": train, **extra}),
-                      sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+    return config_key({"model": scfg["model"], "loss": scfg["loss"], "optim": scfg["optim"], "train": train},
+                      extra)

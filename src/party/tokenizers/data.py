@@ -7,50 +7,11 @@ padding and every sequence is encoded exactly as it would be alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-
-import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from party.data import FeatureBank, MotionStore, Normalizer, WindowDataset, load_index
-from party.motion.parts import PartLayout
-
-
-@dataclass
-class StreamData:
-    index: object
-    store: MotionStore
-    normalizer: Normalizer
-    layout: PartLayout
-    stream: str
-
-    @property
-    def feat_index(self) -> np.ndarray:
-        return self.layout.index(self.stream)
-
-    @property
-    def in_dim(self) -> int:
-        return len(self.feat_index)
-
-    def meta(self) -> dict:
-        idx = self.index
-        return {"stream": self.stream, "dataset": idx.dataset, "skeleton": idx.skeleton,
-                "fps": idx.fps, "feat_dim": idx.feat_dim, "n_joints": idx.n_joints,
-                "feat_index": [int(i) for i in self.feat_index],
-                "stream_joints": [int(j) for j in self.layout.stream_joints(self.stream)]}
-
-    def stats(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.normalizer.mean[self.feat_index], self.normalizer.std[self.feat_index]
-
-
-def load_stream_data(cfg, stream: str) -> StreamData:
-    index = load_index(Path(cfg.paths.prepared))
-    layout = PartLayout.from_config(cfg.dataset.parts, index.n_joints)
-    layout.index(stream)        # unknown stream -> clear KeyError
-    normalizer = Normalizer.load(index.root, index.feat_dim)
-    return StreamData(index, MotionStore(index.root, index.feat_dim), normalizer, layout, stream)
+from party.data import FeatureBank, WindowDataset
+from party.data.context import StreamData
 
 
 def train_loader(data: StreamData, crop: int, batch_size: int, num_workers: int, pin_memory: bool,

@@ -39,18 +39,17 @@ def _penalty(kind: str):
 def lr_factor(step: int, optim: dict) -> float:
     """Two-stage schedule: lr until ``milestone`` iterations, lr_after from then on (+ optional warm-up)."""
     f = 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
-    warm = int(optim.get("warmup_steps", 0) or 0)
+    warm = int(optim["warmup_steps"] or 0)
     return f * min(1.0, (step + 1) / warm) if warm > 0 else f
 
 
 class VQVAELit(L.LightningModule):
-    def __init__(self, tok: Tokenizer, scfg: dict, metrics_cfg: dict | None = None):
+    def __init__(self, tok: Tokenizer, scfg: dict, metrics_cfg):
         super().__init__()
         self.tok = tok
         self.loss_cfg, self.optim_cfg = scfg["loss"], scfg["optim"]
         self._pen = _penalty(self.loss_cfg["feat_loss"])   # bad value: fails at construction
-        m = metrics_cfg or {}
-        self.unit_scale = float(m.get("unit_scale", 1000.0))
+        self.unit_scale = float(metrics_cfg["unit_scale"])
         self.keep_outputs = False          # tests / extraction checks: keep val codes + recon
         self.val_outputs: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
         self.val_results: dict[str, float] = {}
@@ -72,11 +71,11 @@ class VQVAELit(L.LightningModule):
         with torch.set_grad_enabled(torch.is_grad_enabled() and float(lc["lambda_rec"]) != 0):
             j_hat = self._joints(out["recon"])
         j_gt = self._joints(out["target"])
-        if self.loss_cfg.get("rec_positions", "global") == "root_split":
+        if self.loss_cfg["rec_positions"] == "root_split":
             # L1 on root-relative positions + L1 on the root position (see module docstring)
             err = (((j_hat - j_hat[..., :1, :]) - (j_gt - j_gt[..., :1, :])).abs().mean((-1, -2))
                    + (j_hat[..., 0, :] - j_gt[..., 0, :]).abs().mean(-1))
-        elif self.loss_cfg.get("rec_positions", "global") == "global":
+        elif self.loss_cfg["rec_positions"] == "global":
             err = (j_hat - j_gt).abs().mean((-1, -2))
         else:
             raise ValueError(f"vqvae.loss.rec_positions must be global|root_split, "
@@ -165,7 +164,7 @@ class VQVAELit(L.LightningModule):
     def configure_optimizers(self):
         o = self.optim_cfg
         opt = torch.optim.AdamW(self.parameters(), lr=float(o["lr"]), betas=tuple(o["betas"]),
-                                weight_decay=float(o.get("weight_decay", 0.0)))
+                                weight_decay=float(o["weight_decay"]))
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, o))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 

@@ -12,17 +12,22 @@ Layout of ``<tokens_dir>/<stream>/``:
 Code i of an entry covers frames ``start + i*w .. start + (i+1)*w - 1`` of its
 motion (``meta.window`` = w; ``meta.tail`` says whether a last partial group
 was dropped (``crop``) or padded (``pad``)).
+
+``meta.levels`` = Q code levels per token: Q = 1 (one codebook) stores ``codes.npy``
+as (N,) and ``get`` returns (n,); residual / hierarchical quantizers (Q > 1) store
+(N, Q) and ``get`` returns (n, Q) (level 0 first). Stores written before ``levels``
+existed are Q = 1. ``length``/``offset``/``n_codes_total`` count tokens (rows).
+Nothing here unpickles: ``np.load(allow_pickle=False)`` and JSON only.
 """
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 from typing import Iterable, Mapping
 
 import numpy as np
 
-from party.io import atomic_dir, save_npy, write_json
+from party.io import atomic_dir, read_json, require, save_npy, write_json
 
 
 class TokenStore:
@@ -36,20 +41,20 @@ class TokenStore:
     @classmethod
     def open(cls, root: str | Path, mmap: bool = True) -> "TokenStore":
         root = Path(root)
-        idx_path, codes_path = root / "index.json", root / "codes.npy"
-        for p in (idx_path, codes_path):
-            if not p.exists():
-                raise FileNotFoundError(f"{p}: missing; run `party extract_tokens`")
-        try:
-            index = json.loads(idx_path.read_text())
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{idx_path}: not valid JSON ({e}); rerun `party extract_tokens`") from e
+        index = read_json(root / "index.json", "party extract_tokens")
+        codes_path = require(root / "codes.npy", "party extract_tokens")
         codes = np.load(codes_path, mmap_mode="r" if mmap else None, allow_pickle=False)
         total = sum(e["length"] for e in index["entries"])
-        if codes.ndim != 1 or len(codes) != total:
-            raise ValueError(f"{codes_path}: holds {codes.shape} codes, index says {total}; "
+        want = _codes_shape(total, _levels(index["meta"]))
+        if codes.shape != want:
+            raise ValueError(f"{codes_path}: holds {codes.shape} codes, index says {want}; "
                              "rerun `party extract_tokens`")
         return cls(root, codes, index)
+
+    @property
+    def levels(self) -> int:
+        """Code levels per token (1: codes (n,); Q > 1: codes (n, Q))."""
+        return _levels(self.meta)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -66,27 +71,50 @@ class TokenStore:
         return self.entries[self.keys[key]]
 
     def get(self, key: str) -> np.ndarray:
-        """Codes (n,) int64 of a clip id or motion name."""
+        """Codes (n,) int64 of a clip id or motion name; (n, Q) when ``levels`` = Q > 1."""
         e = self.entry(key)
         return np.asarray(self.codes[e["offset"]:e["offset"] + e["length"]], dtype=np.int64)
 
 
+def _levels(meta: Mapping) -> int:
+    # stores written before multi-level codes carry no ``levels``: one code per token
+    return int(meta["levels"]) if "levels" in meta else 1
+
+
+def _codes_shape(n: int, levels: int) -> tuple[int, ...]:
+    return (n,) if levels == 1 else (n, levels)
+
+
 def write_token_store(root: str | Path, sequences: Iterable[tuple[dict, np.ndarray]],
                       keys: Mapping[str, int], meta: dict) -> dict:
-    """Write ``(entry, codes)`` pairs (entry: motion/start/end) and ``keys`` -> entry number, atomically."""
+    """Write ``(entry, codes)`` pairs (entry: motion/start/end) and ``keys`` -> entry number, atomically.
+
+    codes: (n,) per entry for one code level, (n, Q) for Q > 1 levels. ``meta["levels"]``,
+    when given, must match; otherwise it is taken from the codes (1 when there are none)."""
     entries, chunks, offset = [], [], 0
     for entry, codes in sequences:
         codes = np.asarray(codes)
         entries.append({**entry, "offset": offset, "length": int(len(codes))})
         chunks.append(codes)
         offset += len(codes)
+    if "levels" in meta:
+        levels = int(meta["levels"])
+    else:
+        levels = 1 if not chunks or chunks[0].ndim == 1 else int(chunks[0].shape[1])
+    if levels < 1:
+        raise ValueError(f"levels must be >= 1, got {levels} for {root}")
+    for e, c in zip(entries, chunks):
+        if c.shape != _codes_shape(len(c), levels):
+            raise ValueError(f"codes of {e.get('motion')} have shape {c.shape}, expected "
+                             f"{_codes_shape(len(c), levels)} for {levels} code level(s) in {root}")
     n_codes = int(meta["codebook_size"])
     dtype = np.int16 if n_codes <= np.iinfo(np.int16).max else np.int32
-    flat = np.concatenate(chunks).astype(dtype) if chunks else np.zeros(0, dtype)
+    flat = (np.concatenate(chunks).astype(dtype) if chunks
+            else np.zeros(_codes_shape(0, levels), dtype))
     if len(flat) and (flat.min() < 0 or flat.max() >= n_codes):
         raise ValueError(f"codes outside [0, {n_codes}) for {root}")
-    meta = {**meta, "n_entries": len(entries), "n_codes_total": int(len(flat)),
-            "sha256": hashlib.sha256(flat.tobytes()).hexdigest()}
+    meta = {**meta, "levels": levels, "n_entries": len(entries), "n_codes_total": int(len(flat)),
+            "sha256": hashlib.sha256(np.ascontiguousarray(flat).tobytes()).hexdigest()}
     with atomic_dir(root) as tmp:
         save_npy(tmp / "codes.npy", flat)
         write_json(tmp / "index.json", {"meta": meta, "entries": entries, "keys": dict(keys)}, indent=None)

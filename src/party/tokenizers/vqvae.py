@@ -14,20 +14,35 @@ Lengths that are not a multiple of w (``tail``):
   padded frames get no LTE weight and no loss; the decoded output is cut back
   to T frames by the caller (``frame_mask``).
 A batch may carry a ``mask`` (B,T) of valid frames (right padding).
+
+Tokenizer families (``vqvae.model.family``): ``build_tokenizer`` builds the network
+of the configured family (``FAMILIES``: ``temporal_vq`` = ``VQVAE``; or the dotted
+path of an ``nn.Module`` class satisfying ``protocol.TokenizerModel``) and
+``model.pt`` records the family, so ``load_tokenizer`` rebuilds the same class.
+``model.pt`` holds tensors and plain containers only (``torch.load(weights_only=True)``).
 """
 from __future__ import annotations
 
+import logging
+import pickle
 from typing import Any, Mapping
 
 import torch
 from torch import nn
 
+from party.io import require
 from party.tokenizers.encoder import Decoder, Encoder, window_strides
+from party.tokenizers.protocol import TokenizerModel
 from party.tokenizers.quantizer import EMAQuantizer
 from party.tokenizers.temporal import GlobalTemporalEnhancement, LocalTemporalEnhancement
+from party.training import count_params
+
+log = logging.getLogger(__name__)
 
 
 class VQVAE(nn.Module):
+    levels = 1      # one code per token: codes (B, n)
+
     def __init__(self, in_dim: int, cfg: Mapping[str, Any]):
         super().__init__()
         self.cfg = dict(cfg)
@@ -53,6 +68,10 @@ class VQVAE(nn.Module):
         self.decoder = Decoder(code_dim, width, in_dim, strides, int(cfg["depth"]),
                                int(cfg["dilation_growth"]))
         self.in_dim = in_dim
+
+    @property
+    def codebook_size(self) -> int:
+        return self.quantizer.n_codes
 
     # ---------------------------------------------------------------- lengths
     def n_tokens(self, length: int) -> int:
@@ -125,12 +144,82 @@ class VQVAE(nn.Module):
                 "perplexity": out["perplexity"], "resets": out["resets"], "usage": out["usage"]}
 
 
-def count_parameters(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters())
+# ====================================================================== families
+FAMILIES: dict[str, type[nn.Module]] = {"temporal_vq": VQVAE}
+LEGACY_FAMILY = "temporal_vq"   # the family of model.pt files written before families existed
+
+
+def register_family(name: str, cls: type[nn.Module]) -> None:
+    """Make ``vqvae.model.family=<name>`` build ``cls(in_dim, model_cfg)``."""
+    if "." in name:
+        raise ValueError(f"family name {name!r}: no dots (dotted names are import paths)")
+    if name in FAMILIES and FAMILIES[name] is not cls:
+        raise ValueError(f"tokenizer family {name!r} is already registered ({FAMILIES[name].__qualname__})")
+    FAMILIES[name] = cls
+
+
+def family_class(name: str) -> type[nn.Module]:
+    """The network class of a family: a registered name, or ``package.module.Class``."""
+    if name in FAMILIES:
+        return FAMILIES[name]
+    if "." not in name:
+        raise KeyError(f"unknown tokenizer family {name!r}: registered {sorted(FAMILIES)}, "
+                       "or the dotted import path of a model class")
+    from hydra.utils import get_class
+    try:
+        cls = get_class(name)
+    except Exception as e:  # noqa: BLE001 - hydra raises ImportError / ValueError / others
+        raise KeyError(f"tokenizer family {name!r}: cannot import it ({e})") from e
+    if not issubclass(cls, nn.Module):
+        raise TypeError(f"tokenizer family {name!r} is not an nn.Module class")
+    return cls
+
+
+def family_name(cls: type) -> str:
+    """What ``model.pt`` records for a network class: its registered name, else its import path."""
+    for name, c in FAMILIES.items():
+        if c is cls:
+            return name
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def build_model(in_dim: int, mcfg: Mapping[str, Any]) -> nn.Module:
+    """The network of family ``mcfg["family"]`` for ``in_dim`` stream channels."""
+    model = family_class(str(mcfg["family"]))(in_dim, mcfg)
+    if not isinstance(model, TokenizerModel):
+        raise TypeError(f"tokenizer family {mcfg['family']!r}: {type(model).__qualname__} does not "
+                        "satisfy party.tokenizers.protocol.TokenizerModel")
+    return model
+
+
+def build_tokenizer(in_dim: int, mcfg: Mapping[str, Any], mean, std, meta: dict) -> "Tokenizer":
+    """A new (untrained) tokenizer of the configured family (``mcfg`` = one stream's
+    ``vqvae.model``, see ``party.tokenizers.config.stream_config``), with the stream's
+    normalisation ``mean``/``std`` and ``meta`` (``StreamData.meta()``)."""
+    return Tokenizer(build_model(in_dim, mcfg), mean, std, meta)
 
 
 # ====================================================================== tokenizer
-TOKENIZER_FORMAT = "party.tokenizer/1"
+TOKENIZER_FORMAT = "party.tokenizer/2"    # /2: records the family; tensors + plain containers only
+LEGACY_FORMATS = ("party.tokenizer/1",)   # no family (= LEGACY_FAMILY); may need weights_only=False
+_PLAIN = (str, int, float, bool, type(None))
+
+
+def _plain(x, where: str = "config"):
+    """Plain containers (dict, list, str, int, float, bool, None) for ``model.pt``."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+    if isinstance(x, (DictConfig, ListConfig)):
+        x = OmegaConf.to_container(x, resolve=True)
+    if isinstance(x, Mapping):
+        return {str(k): _plain(v, f"{where}.{k}") for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(x)]
+    if hasattr(x, "item") and getattr(x, "shape", None) == ():      # numpy / torch scalar
+        x = x.item()
+    if isinstance(x, _PLAIN):
+        return x
+    raise TypeError(f"tokenizer {where}: {type(x).__name__} is not a plain value (str, int, float, "
+                    "bool, None, list, dict); model.pt must load with weights_only=True")
 
 
 class Tokenizer(nn.Module):
@@ -141,8 +230,11 @@ class Tokenizer(nn.Module):
     stream_joints (joint ids its features determine, root first), skeleton, fps.
     """
 
-    def __init__(self, model: VQVAE, mean, std, meta: dict):
+    def __init__(self, model: nn.Module, mean, std, meta: dict):
         super().__init__()
+        if not isinstance(model, TokenizerModel):
+            raise TypeError(f"{type(model).__qualname__} does not satisfy "
+                            "party.tokenizers.protocol.TokenizerModel")
         self.model = model
         self.meta = dict(meta)
         self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone())
@@ -153,6 +245,32 @@ class Tokenizer(nn.Module):
     @property
     def window(self) -> int:
         return self.model.window
+
+    @property
+    def tail(self) -> str:
+        return self.model.tail
+
+    @property
+    def codebook_size(self) -> int:
+        return int(self.model.codebook_size)
+
+    @property
+    def levels(self) -> int:
+        return int(self.model.levels)
+
+    @property
+    def family(self) -> str:
+        return family_name(type(self.model))
+
+    @property
+    def device(self) -> torch.device:
+        return self.mean.device
+
+    def stats(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.mean, self.std
+
+    def n_params(self) -> int:
+        return count_params(self)
 
     def normalize(self, raw: torch.Tensor) -> torch.Tensor:
         return (raw - self.mean) / self.std
@@ -174,24 +292,24 @@ class Tokenizer(nn.Module):
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Normalised stream features (B, T, D) -> codes (B, n) (-1 on padded groups)."""
+        """Normalised stream features (B, T, D) -> codes (B, n[, Q]) (-1 on padded groups)."""
         return self.model.encode(x, mask)[0]
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
-        """Codes (B, n) -> normalised stream features (B, n*w, D)."""
+        """Codes (B, n[, Q]) -> normalised stream features (B, n*w, D)."""
         return self.model.decode(codes)
 
     @torch.no_grad()
     def tokenize(self, raw) -> torch.Tensor:
-        """Raw (unnormalised) stream features (T, D) -> codes (n,) long."""
+        """Raw (unnormalised) stream features (T, D) -> codes (n,) long ((n, Q) for Q levels)."""
         x = torch.as_tensor(raw, dtype=torch.float32, device=self.mean.device)
         idx, _ = self.model.encode(self.normalize(x)[None])
         return idx[0]
 
     @torch.no_grad()
     def detokenize(self, codes) -> torch.Tensor:
-        """Codes (n,) -> raw stream features (n*w, D)."""
+        """Codes (n,) (or (n, Q)) -> raw stream features (n*w, D)."""
         idx = torch.as_tensor(codes, dtype=torch.long, device=self.mean.device)
         return self.denormalize(self.model.decode(idx[None])[0])
 
@@ -209,16 +327,24 @@ class Tokenizer(nn.Module):
         return gt, full
 
     def export(self) -> dict:
-        return {"format": TOKENIZER_FORMAT, "in_dim": self.model.in_dim, "config": self.model.cfg,
-                "meta": self.meta, "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+        """Tensors and plain containers only (``torch.load(weights_only=True)``)."""
+        return {"format": TOKENIZER_FORMAT, "family": self.family, "in_dim": int(self.model.in_dim),
+                "config": _plain(self.model.cfg), "meta": _plain(self.meta, "meta"),
+                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
 
     @classmethod
     def from_export(cls, obj: dict, source: str = "<memory>") -> "Tokenizer":
-        if obj.get("format") != TOKENIZER_FORMAT:
-            raise ValueError(f"{source}: not a party tokenizer (format {obj.get('format')!r}, "
-                             f"expected {TOKENIZER_FORMAT!r})")
+        fmt = obj.get("format")
+        if fmt == TOKENIZER_FORMAT:
+            family = str(obj["family"])
+        elif fmt in LEGACY_FORMATS:
+            family = LEGACY_FAMILY
+        else:
+            raise ValueError(f"{source}: not a party tokenizer (format {fmt!r}, "
+                             f"expected {TOKENIZER_FORMAT!r} or one of {LEGACY_FORMATS})")
         sd = obj["state_dict"]
-        tok = cls(VQVAE(int(obj["in_dim"]), obj["config"]), sd["mean"], sd["std"], obj["meta"])
+        model = family_class(family)(int(obj["in_dim"]), obj["config"])
+        tok = cls(model, sd["mean"], sd["std"], obj["meta"])
         tok.load_state_dict(sd)
         return tok.eval()
 
@@ -233,22 +359,45 @@ def save_tokenizer(tok: Tokenizer, path) -> None:
     write_bytes(path, buf.getvalue())
 
 
+def _torch_load(path, map_location) -> tuple[Any, bool]:
+    """``torch.load`` with ``weights_only=True``; ``weights_only=False`` only when that refuses
+    the file (older writers could store other objects). Returns (object, loaded safely)."""
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True), True
+    except pickle.UnpicklingError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        log.warning("%s: not loadable with weights_only=True (%s); loading it with weights_only=False "
+                    "as a file of an older party version", path, first)
+    except Exception as e:  # noqa: BLE001 - name the file whatever torch raised
+        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
+    try:
+        return torch.load(path, map_location=map_location, weights_only=False), False
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
+
+
 def load_tokenizer(path, map_location="cpu") -> Tokenizer:
-    """Load a tokenizer from its folder (``model.pt``), a ``model.pt`` or a Lightning ``.ckpt``."""
+    """Load a tokenizer from its folder (``model.pt``), a ``model.pt`` or a Lightning ``.ckpt``.
+
+    Files are read with ``torch.load(weights_only=True)``; only files in a legacy format
+    (``party.tokenizer/1``) may fall back to ``weights_only=False`` (logged)."""
     from pathlib import Path
     path = Path(path)
     if path.is_dir():
         path = path / "model.pt"
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: tokenizer not found; run `party train_vqvae`")
-    try:
-        obj = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # noqa: BLE001 - name the file whatever torch raised
-        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
+    path = require(path, "party train_vqvae", what="tokenizer")
+    obj, safe = _torch_load(path, map_location)
     if isinstance(obj, dict) and "party_tokenizer" in obj:      # Lightning checkpoint
         exp = dict(obj["party_tokenizer"])
         exp["state_dict"] = {k[len("tok."):]: v for k, v in obj["state_dict"].items() if k.startswith("tok.")}
         obj = exp
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: not a party tokenizer file")
-    return Tokenizer.from_export(obj, str(path))
+    fmt = obj.get("format")
+    if not safe and fmt not in LEGACY_FORMATS:
+        raise ValueError(f"{path}: format {fmt!r} must load with weights_only=True but holds other "
+                         "objects than tensors and plain containers; refusing it")
+    tok = Tokenizer.from_export(obj, str(path))
+    log.info("%s: %s tokenizer (format %s, family %s), loaded with weights_only=%s", path,
+             tok.meta["stream"], fmt, tok.family, safe)
+    return tok

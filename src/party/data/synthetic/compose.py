@@ -209,7 +209,7 @@ def synthesize_full(spec: MotionSpec, body_cfg, fps: float) -> tuple[np.ndarray,
     else:
         spine_R = legs_spine
 
-    gain = float(body_cfg.get("balance_gain", 0.0) or 0.0)
+    gain = float(body_cfg["balance_gain"] or 0.0)
     if gain:
         legs_R = _balance(legs, legs_R, arms_pose, arms_glob, spine_R, body, gain)
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 @dataclass
 class PartTextResult:
-    parts: dict                  # {"arms": str, "legs": str}
+    parts: dict                  # {part: str} for every part of part_texts.parts
     fallback: bool = False       # True: the answer is the fallback (format never valid / request failed)
     reason: str = ""             # why it fell back ("format: ...", "request: ...")
     calls: int = 0               # requests sent to the backend (rules: 1 per caption)

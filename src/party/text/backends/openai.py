@@ -4,7 +4,7 @@ server, hosted APIs), with the standard library's HTTP client.
 Per caption (``describe``):
 - up to ``max_format_attempts`` answers are requested; an answer that fails ``parse_answer``
   is asked again (TextIM §3.3); after the last failure the result is the fallback
-  ``"No significant movement"`` for both parts, marked ``fallback`` (and cached: asking again
+  ``"No significant movement"`` for every part, marked ``fallback`` (and cached: asking again
   would cost the same);
 - each request is retried up to ``max_retries`` times on 429, 5xx, timeouts and connection
   errors, sleeping ``backoff_base_s * 2**k`` (capped at ``backoff_max_s``, at least the
@@ -63,8 +63,9 @@ class OpenAIBackend:
         self.model = str(cfg.model)
         self.url = str(cfg.base_url).rstrip("/") + "/chat/completions"
         self.no_movement = str(cfg.get("no_movement_text", NO_MOVEMENT))
+        self.part_names = [str(p) for p in cfg.parts]
         self.stop = stop or threading.Event()
-        self.fingerprint = prompt_fingerprint()
+        self.fingerprint = prompt_fingerprint(self.part_names)
         env = str(cfg.api_key_env) if cfg.get("api_key_env") else None
         self._key = os.environ.get(env) if env else None
         if env and not self._key:
@@ -123,8 +124,11 @@ class OpenAIBackend:
                     raise InterruptedError("stopped") from None
 
     # -- one caption -------------------------------------------------------------------
+    def _fallback(self) -> dict:
+        return {p: self.no_movement for p in self.part_names}
+
     def describe(self, caption: str) -> PartTextResult:
-        body = json.dumps({"model": self.model, "messages": build_messages(caption),
+        body = json.dumps({"model": self.model, "messages": build_messages(caption, self.part_names),
                            "temperature": float(self.cfg.temperature),
                            "max_tokens": int(self.cfg.max_tokens)}).encode()
         res = PartTextResult(parts={})
@@ -132,16 +136,17 @@ class OpenAIBackend:
         for _ in range(int(self.cfg.max_format_attempts)):
             try:
                 res.raw = self._request(body, res)
-                res.parts = parse_answer(res.raw, self.no_movement, bool(self.cfg.allow_extra_lines))
+                res.parts = parse_answer(res.raw, self.part_names, self.no_movement,
+                                         bool(self.cfg.allow_extra_lines))
                 return res
             except FormatError as e:
                 res.format_failures += 1
                 last = str(e)
             except TransientError as e:
-                res.parts = {"arms": self.no_movement, "legs": self.no_movement}
+                res.parts = self._fallback()
                 res.fallback, res.cacheable, res.reason = True, False, f"request: {e}"
                 return res
-        res.parts = {"arms": self.no_movement, "legs": self.no_movement}
+        res.parts = self._fallback()
         res.fallback, res.reason = True, f"format: {last}"
         return res
 

@@ -27,6 +27,9 @@ from party.text.backends.base import PartTextResult
 from party.text.prompt import NO_MOVEMENT
 
 # ------------------------------------------------------------------ lexicon
+# the parts the lexicon tells apart (nouns, verb classes and texts below); part_texts.parts
+# chooses which of them a run writes
+LEXICON_PARTS = ("arms", "legs")
 ARM_NOUNS = {"arm", "hand", "wrist", "elbow", "fist", "finger", "palm", "forearm", "shoulder", "thumb"}
 LEG_NOUNS = {"leg", "foot", "knee", "toe", "heel", "ankle", "thigh", "shin", "calf", "feet", "tiptoe"}
 PLURAL = {"feet": "foot", "calves": "calf"}
@@ -329,14 +332,21 @@ class RulesBackend:
     name = "rules"
 
     def __init__(self, cfg=None):
+        """``cfg``: the part_texts config (``parts``, ``no_movement_text``); None: every part of
+        the lexicon, the default no-movement text (the agreement tool)."""
         self.no_movement = str(cfg.get("no_movement_text", NO_MOVEMENT)) if cfg is not None else NO_MOVEMENT
+        self.part_names = tuple(str(p) for p in cfg.parts) if cfg is not None else LEXICON_PARTS
+        unknown = [p for p in self.part_names if p not in LEXICON_PARTS]
+        if unknown or not self.part_names:
+            raise ValueError(f"part_texts.parts={list(self.part_names)}: the rules backend knows the parts "
+                             f"{list(LEXICON_PARTS)}")
         src = Path(__file__).read_bytes()
         self.fingerprint = hashlib.sha1(src).hexdigest()[:12]
         self.model = f"rules-{self.fingerprint}"          # rule changes invalidate the cache
 
     def extract(self, caption: str) -> dict:
         """{"arms": [(side, text)], "legs": [...]} events; empty list = no movement."""
-        events: dict[str, list] = {"arms": [], "legs": []}
+        events: dict[str, list] = {p: [] for p in LEXICON_PARTS}
         swings: dict[int, str] = {}                        # phase -> first swinging gait
         arm_phases: set[int] = set()
         ev_phase: list[int] = []                           # phase of each arms event
@@ -478,7 +488,7 @@ class RulesBackend:
     def parts(self, caption: str) -> dict:
         ev = self.extract(caption)
         out = {}
-        for part in ("arms", "legs"):
+        for part in self.part_names:
             if not ev[part]:
                 out[part] = self.no_movement
                 continue

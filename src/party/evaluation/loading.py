@@ -1,0 +1,141 @@
+"""Loading what an evaluation needs from config: the evaluators of each stream, the
+coherence part sets and SC reference statistics, tokenizer reconstruction sources, and
+the efficiency table (parameters, AIT). Used by ``evaluate``, ``calibrate_coherence``
+and the tokenizer ablation's reconstruction FID."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from party.evaluation.checkpoint import load_reference, load_trained
+from party.evaluation.coherence import Parts, SCReference
+from party.data.context import DataContext, load_context
+from party.evaluation.efficiency import measure_ait
+from party.evaluation.protocol import motion_joints
+from party.evaluation.sources import find_tokenizer, load_tokenizer_source
+from party.training import count_params
+
+log = logging.getLogger(__name__)
+
+
+def load_evaluators(cfg: DictConfig, ctx: DataContext, device: torch.device) -> dict:
+    evc = cfg.evaluator
+    out = {}
+    for s in evc.streams:
+        if s == ctx.layout.whole_stream and evc.kind == "reference":
+            r = evc.reference
+            dims = {k: v for k, v in OmegaConf.to_container(r.model, resolve=True).items() if k != "dropout"}
+            if not r.checkpoint or not r.glove_dir:
+                raise ValueError("evaluator.kind=reference needs evaluator.reference.checkpoint and .glove_dir")
+            mean = np.load(r.mean) if r.mean else ctx.normalizer.mean
+            std = np.load(r.std) if r.std else ctx.normalizer.std
+            if not r.mean:
+                log.warning("reference evaluator without its own mean/std: using the dataset's Mean.npy/Std.npy")
+            out[s] = load_reference(r.checkpoint, r.glove_dir, mean, std, dims, evc.unit_length,
+                                    evc.max_text_len, device, evc.max_motion_len)
+        else:
+            path = Path(evc.out_dir) / s / "finest.tar"
+            if not path.exists():
+                log.warning("%s: no %s evaluator; its metrics are skipped (run `party train_evaluator "
+                            "evaluator.stream=%s`)", path, s, s)
+                continue
+            out[s] = load_trained(path, device, glove_dir=cfg.evaluator.glove_dir)
+        if out[s].feat_dim != ctx.feat_dim:
+            raise ValueError(f"{s} evaluator reads {out[s].feat_dim}-dim features, dataset has {ctx.feat_dim}")
+    if not out:
+        raise FileNotFoundError(f"no evaluator found under {evc.out_dir}; run `party train_evaluator` first")
+    return out
+
+
+def coherence_parts(cfg: DictConfig, ctx: DataContext) -> Parts:
+    pc = ctx.parts_cfg
+    if "coherence" not in pc or "torso" not in pc:
+        raise ValueError("dataset.parts needs `coherence` (five parts) and `torso` for TC/SC")
+    ends = cfg.eval.coherence.end_joints
+    ends = dict(ends) if ends else {k: v[-1] for k, v in pc["coherence"].items()}
+    return Parts.build(pc["coherence"], ends, pc["torso"])
+
+
+def fit_sc_reference(ctx: DataContext, parts: Parts, split: str, max_clips: int | None, seed: int) -> SCReference:
+    """SC statistics over every frame of (up to max_clips) clips of ``split``, joints from features."""
+    bank = ctx.bank(split, 2)
+    ids = np.arange(len(bank))
+    if max_clips and len(ids) > max_clips:
+        ids = np.sort(np.random.default_rng(seed).choice(ids, max_clips, replace=False))
+
+    def joints():
+        for i in ids:
+            yield motion_joints([ctx.normalizer.denorm(bank.get(int(i)).numpy())], ctx.n_joints)[0]
+
+    return SCReference.fit(joints(), parts)
+
+
+def tokenizer_sources(cfg: DictConfig, ctx: DataContext, device: torch.device) -> dict:
+    src = cfg.eval.sources
+    out = {}
+    for s in src.tokenizers or []:
+        ckpt = find_tokenizer(Path(src.tokenizers_dir) / s, src.tokenizer_ckpt)
+        if ckpt is not None:
+            out[s] = load_tokenizer_source(ckpt, s, ctx, device)
+        else:
+            log.info("%s: no tokenizer checkpoint, reconstruction of %s skipped", Path(src.tokenizers_dir) / s, s)
+    return out
+
+
+def efficiency(cfg: DictConfig, evaluators: dict, tokenizers: dict, generated: list, gt) -> dict:
+    e = cfg.eval.efficiency
+    out = {"evaluators": {s: count_params(ev) for s, ev in evaluators.items()}, "tokenizers": {}, "generated": {}}
+    if tokenizers:
+        sample = gt.draw(np.random.default_rng(0))
+        for s, src in tokenizers.items():
+            inputs = src.ait_inputs(sample, e.ait_samples)
+            out["tokenizers"][s] = {"params": src.n_params(), "window": src.window,
+                                    **measure_ait(src.reconstruct_stream, inputs, e.ait_samples,
+                                                  e.ait_warmup)}
+    for g in generated:
+        out["generated"][g.name] = {k: g.meta[k] for k in ("params", "ait_ms") if k in g.meta}
+    return out
+
+
+def reconstruction_fid_scorer(cfg, stream: str):
+    """A function ``tok_dir -> {recon_fid, recon_fid_ci95}`` scoring a tokenizer's reconstructions
+    of ``eval.split`` under the stream's evaluator with the ``evaluate`` stage's protocol, or
+    None when FID is off or no evaluator exists. ``run`` builds one per distinct evaluation
+    setup, so data, evaluator and ground truth load once per sweep, not once per point."""
+    from party.evaluation.protocol import Embedder, run_protocol
+    from party.evaluation.sources import GroundTruthSource
+    from party.training import resolve_device
+
+    ab = cfg.vqvae.ablation
+    if not ab.fid or "evaluator" not in cfg or "eval" not in cfg:
+        return None
+    ctx = load_context(cfg)
+    device = resolve_device(cfg.eval.device)
+    only = OmegaConf.merge(cfg, {"evaluator": {"streams": [stream]}})      # load this stream's alone
+    try:
+        ev = load_evaluators(only, ctx, device).get(stream)
+    except FileNotFoundError:
+        ev = None
+    if ev is None:
+        log.info("no %s evaluator under %s: reconstruction FID skipped", stream, cfg.evaluator.out_dir)
+        return None
+    ec = cfg.eval
+    protocol = OmegaConf.to_container(ec, resolve=True)
+    protocol.update(replications=ab.fid_replications, coherence={"enabled": False},
+                    sources={"ground_truth": False})
+    gt = GroundTruthSource(ctx, ec.split, ec.max_motion_len, ec.unit_length)
+    embedders = {stream: Embedder(ev, ec.embed_batch_size)}
+
+    def score(tok_dir: Path) -> dict:
+        src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device)
+        res = run_protocol(protocol, gt, embedders, {stream: src}, [], None, None, ctx.n_joints, ctx.layout,
+                           progress=False)
+        fid = res[f"recon_{stream}"][stream]["fid"]
+        return {"recon_fid": round(float(fid["mean"]), 4), "recon_fid_ci95": round(float(fid["ci95"]), 4)}
+
+    return score

@@ -1,0 +1,1 @@
+"""Entry script a stage's child processes run (see ``party_stage.py``)."""

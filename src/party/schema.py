@@ -1,0 +1,760 @@
+"""Typed schema of the composed configuration (``conf/`` -> ``params.yaml``).
+
+One dataclass per config group, nested as the composed config is: :class:`Config`
+is the root (``seed``, ``progress``, ``objective``, ``paths`` and the groups ``dataset``,
+``tracking``, ``trainer``, ``text``, ``part_texts``, ``vqvae``, ``evaluator``,
+``eval``). The schema names and types keys; **values live in conf/ only**, so no
+field carries a value default: a field is either required (``MISSING``; a nested
+group is built from its own all-``MISSING`` dataclass) or ``Optional[...] = None``
+for a key that only some group options have (``dataset.synthetic``, the CLIP-only ``text.*`` keys, the OpenAI-only
+``part_texts.*`` keys, the per-stream ``vqvae.tokenizers.<stream>`` overrides).
+A required key may be nullable (``Optional[int] = MISSING``: present, may be null).
+
+:func:`validate` checks a composed config (or ``params.yaml``) against the schema
+and raises :class:`ConfigError` naming the dotted key, e.g.::
+
+    params.yaml: vqvae.train.max_steps: 'abc' is not an int
+    conf: unknown key vqvae.train.bogus (not in the schema; typo?)
+
+Checks: unknown keys, missing required keys, types (strict: a quoted ``'5'`` is not
+an int, ``1`` is not a bool; an int is a float), ``null`` only where the schema says
+Optional, and the few genuine unions (``trainer.devices``: int | str | list of int;
+``eval.sources.generated``: str | list of str). ``???`` (the conf's own "must be
+set" marker, e.g. ``dataset.root`` of a real dataset) is accepted: OmegaConf raises,
+naming the key, when a stage reads it. The returned config holds the values exactly
+as given (resolved, never coerced or filled in), so params.yaml, config hashes and
+``cfg.get(key, default)`` lookups behave as before.
+
+Where validation runs: ``party.config.compose`` (hence ``party params``, ``party
+params --check`` and every test composing ``conf/``) and ``party.config.load_params``;
+stages call ``validate(cfg, "params.yaml")`` at start. ``dvc exp run -S ...``
+composes ``conf/`` through Hydra without importing ``party``, so a bad ``-S`` value
+there is written to params.yaml unchecked and caught when the first stage starts.
+The schema is deliberately not attached to Hydra's composition (ConfigStore +
+defaults lists): Hydra would then coerce values while composing (``fps: 20`` ->
+``20.0``) and add ``null`` for every absent optional key, changing params.yaml, and
+conf/ would stop composing wherever the plugin is not installed.
+
+The dataclasses are valid OmegaConf structured configs (unions are typed ``Any``),
+so ``OmegaConf.structured(Config)`` builds, but ``validate`` walks them itself:
+OmegaConf 2.3 coerces (``'5'`` -> 5, ``1`` -> true), has no unions, and rejects an int
+in a ``List[float]`` inside a ``Dict`` (``limits_deg: {elbow: [0, 150]}``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Optional
+
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+__all__ = ["ConfigError", "Config", "validate", "SCHEMA_GROUPS"]
+
+
+class ConfigError(ValueError):
+    """A config does not match the schema; the message names the dotted key."""
+
+    def __init__(self, message: str, key: str = ""):
+        super().__init__(message)
+        self.key = key
+
+
+def _group(cls):
+    """A required nested group: the node exists with every leaf ``MISSING``."""
+    return field(default_factory=cls)
+
+
+def _union(*types):
+    """A required key of one of ``types`` (OmegaConf 2.3 has no Union: typed Any, checked here)."""
+    return field(default=MISSING, metadata={"union": types})
+
+
+# --------------------------------------------------------------------------- top level
+
+@dataclass
+class Paths:
+    prepared: str = MISSING
+
+
+# --------------------------------------------------------------------------- dataset
+
+@dataclass
+class Part:
+    joints: List[int] = MISSING
+    contacts: Optional[str] = None          # leg parts only: that foot's contact channels
+
+
+@dataclass
+class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
+    parts: Dict[str, Part] = MISSING
+    streams: List[str] = MISSING            # generation streams, in order
+    stream_parts: Dict[str, List[str]] = MISSING   # stream -> its parts (holistic: none)
+    coherence: Dict[str, List[int]] = MISSING
+    torso: List[int] = MISSING
+
+
+@dataclass
+class SyntheticSplit:
+    train: float = MISSING
+    val: float = MISSING
+    test: float = MISSING
+
+
+@dataclass
+class SpeedWords:
+    slow: float = MISSING
+    fast: float = MISSING
+
+
+@dataclass
+class SyntheticCaptions:
+    per_motion: int = MISSING
+    per_segment: int = MISSING
+    subjects: List[List[str]] = MISSING     # [words, possessive]
+    possessive_prob: float = MISSING
+    speed_words: SpeedWords = _group(SpeedWords)
+    count_prob: float = MISSING
+
+
+@dataclass
+class SyntheticBody:
+    offsets: Dict[str, List[float]] = MISSING   # joint -> parent offset (m)
+    ankle_height: float = MISSING
+    arm_rest_abduction_deg: float = MISSING
+    elbow_rest_deg: float = MISSING
+    balance_gain: float = MISSING
+    leg_reach: float = MISSING
+    limits_deg: Dict[str, List[float]] = MISSING
+    torso_radius: float = MISSING
+    head_radius: float = MISSING
+
+
+@dataclass
+class Synthetic:                            # dataset=synthetic only
+    n_motions: int = MISSING
+    seed: int = MISSING
+    num_workers: int = MISSING
+    mirror: bool = MISSING
+    split: SyntheticSplit = _group(SyntheticSplit)
+    held_out: List[List[str]] = MISSING     # [arms action, legs action]
+    sequence_fraction: float = MISSING
+    sequence_kinds: Dict[str, float] = MISSING
+    constant_arms: Dict[str, float] = MISSING
+    constant_legs: Dict[str, float] = MISSING
+    min_segment_s: float = MISSING
+    max_segment_cyclic_s: float = MISSING
+    transition_frames: int = MISSING
+    pad_s: List[float] = MISSING
+    std_eps: float = MISSING
+    file_sync: bool = MISSING
+    captions: SyntheticCaptions = _group(SyntheticCaptions)
+    body: SyntheticBody = _group(SyntheticBody)
+    # action -> parameter -> number | [lo, hi] | list of choices: free-form tables
+    legs: Dict[str, Dict[str, Any]] = MISSING
+    arms: Dict[str, Dict[str, Any]] = MISSING
+
+
+@dataclass
+class Dataset:
+    name: str = MISSING
+    kind: str = MISSING
+    skeleton: str = MISSING
+    root: str = MISSING
+    fps: float = MISSING
+    feat_dim: int = MISSING
+    n_joints: int = MISSING
+    min_len: int = MISSING
+    max_len: int = MISSING
+    strict: bool = MISSING
+    feet_thre: float = MISSING
+    parts: PartTables = _group(PartTables)
+    synthetic: Optional[Synthetic] = None   # synthetic
+
+
+# --------------------------------------------------------------------------- tracking, trainer
+
+@dataclass
+class Tracking:
+    enabled: bool = MISSING
+    experiment: str = MISSING
+    uri: Optional[str] = MISSING
+    dir: str = MISSING
+    parent_run_id: Optional[str] = MISSING
+    log_system_metrics: bool = MISSING
+    log_model: bool = MISSING
+    n_render_samples: int = MISSING
+
+
+@dataclass
+class Trainer:
+    accelerator: str = MISSING
+    devices: Any = _union(int, str, List[int])  # auto | N | -1 | [ids]
+    num_nodes: int = MISSING
+    strategy: str = MISSING
+    precision: str = MISSING
+    num_workers: int = MISSING
+    pin_memory: bool = MISSING
+    log_every_n_steps: int = MISSING
+    deterministic: bool = MISSING
+
+
+# --------------------------------------------------------------------------- text, part_texts
+
+@dataclass
+class Text:
+    name: str = MISSING
+    batch_size: int = MISSING
+    batches_per_commit: int = MISSING
+    device: str = MISSING
+    index_path: str = MISSING
+    part_texts_path: str = MISSING
+    embeddings_dir: str = MISSING
+    cache_path: str = MISSING
+    # text=minilm
+    model_dir: Optional[str] = None
+    max_seq_length: Optional[int] = None
+    # text=clip
+    arch: Optional[str] = None
+    weights: Optional[str] = None
+    hf_repo: Optional[str] = None
+    hf_cache_dir: Optional[str] = None
+    quick_gelu: Optional[bool] = None
+    normalize: Optional[bool] = None
+    allow_random_init: Optional[bool] = None
+    random_init_seed: Optional[int] = None
+
+
+@dataclass
+class PartTexts:
+    backend: str = MISSING
+    parts: List[str] = MISSING              # part texts per caption (arms, legs)
+    prompt_version: str = MISSING
+    no_movement_text: str = MISSING
+    index_path: str = MISSING
+    out_dir: str = MISSING
+    cache_path: str = MISSING
+    retry_fallbacks: bool = MISSING
+    concurrency: int = MISSING
+    # part_texts=openai
+    base_url: Optional[str] = None
+    model: Optional[str] = None
+    api_key_env: Optional[str] = None
+    temperature: Optional[float] = None
+    max_tokens: Optional[int] = None
+    timeout_s: Optional[float] = None
+    max_retries: Optional[int] = None
+    backoff_base_s: Optional[float] = None
+    backoff_max_s: Optional[float] = None
+    backoff_jitter: Optional[float] = None
+    retry_after_max_s: Optional[float] = None
+    max_format_attempts: Optional[int] = None
+    allow_extra_lines: Optional[bool] = None
+    request_failure: Optional[str] = None
+    max_consecutive_failures: Optional[int] = None
+    seed: Optional[int] = None
+
+
+# --------------------------------------------------------------------------- vqvae
+
+@dataclass
+class LTE:
+    enabled: bool = MISSING
+    hidden: int = MISSING
+    layers: int = MISSING
+    per_position: bool = MISSING
+
+
+@dataclass
+class GTE:
+    enabled: bool = MISSING
+    hidden: int = MISSING
+    layers: int = MISSING
+    adjacency: str = MISSING
+    residual: bool = MISSING
+
+
+@dataclass
+class Quantizer:
+    decay: float = MISSING
+    reset_threshold: float = MISSING
+
+
+@dataclass
+class VQModel:
+    family: str = MISSING                   # temporal_vq | a dotted model-class path
+    window: int = MISSING
+    codebook_size: int = MISSING
+    code_dim: int = MISSING
+    width: int = MISSING
+    depth: int = MISSING
+    dilation_growth: int = MISSING
+    tail: str = MISSING
+    baseline_pool: str = MISSING
+    lte: LTE = _group(LTE)
+    gte: GTE = _group(GTE)
+    quantizer: Quantizer = _group(Quantizer)
+
+
+@dataclass
+class VQLoss:
+    rec_positions: str = MISSING
+    lambda_rec: float = MISSING
+    lambda_app: float = MISSING
+    lambda_feat: float = MISSING
+    lambda_vel: float = MISSING
+    feat_loss: str = MISSING
+
+
+@dataclass
+class SideChecks:
+    wave_margin: float = MISSING
+    kick_lift_m: float = MISSING
+
+
+@dataclass
+class VQDiagnostics:
+    max_baseline_ratio: float = MISSING
+    min_code_spread: float = MISSING
+    on_collapse: str = MISSING
+    code_run_length: int = MISSING
+    side_checks: SideChecks = _group(SideChecks)
+
+
+@dataclass
+class VQOptim:
+    lr: float = MISSING
+    lr_after: float = MISSING
+    milestone: int = MISSING
+    betas: List[float] = MISSING
+    weight_decay: float = MISSING
+    warmup_steps: int = MISSING
+    grad_clip: float = MISSING
+
+
+@dataclass
+class VQTrain:
+    max_steps: int = MISSING
+    batch_size: int = MISSING
+    crop: int = MISSING
+    val_every: int = MISSING
+    ckpt_every: int = MISSING
+    resume: bool = MISSING
+    threads: Optional[int] = MISSING
+    render_samples: int = MISSING
+    log_checkpoint: bool = MISSING
+
+
+@dataclass
+class VQMetrics:
+    unit_scale: float = MISSING
+
+
+@dataclass
+class VQEval:
+    split: str = MISSING
+    max_clips: Optional[int] = MISSING
+    batch_size: int = MISSING
+
+
+@dataclass
+class VQAblation:
+    sweep: str = MISSING
+    out_dir: str = MISSING
+    fid: bool = MISSING
+    fid_replications: int = MISSING
+
+
+def _override_of(cls, name: str, extra: tuple = ()):
+    """``cls`` with every key optional (``None`` = not overridden), nested groups likewise."""
+    hints = typing.get_type_hints(cls)
+    fields = []
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            t = _override_of(t, f"{t.__name__}Override")
+        fields.append((f.name, Optional[t], field(default=None, metadata=f.metadata)))
+    out = dataclasses.make_dataclass(name, fields + list(extra))
+    out.__module__ = __name__
+    return out
+
+
+#: ``vqvae.tokenizers.<stream>``: any ``vqvae.model`` key for one stream, plus an
+#: optional ``train`` block overriding ``vqvae.train`` (party.tokenizers.config.stream_config)
+VQTrainOverride = _override_of(VQTrain, "VQTrainOverride")
+TokenizerOverride = _override_of(VQModel, "TokenizerOverride",
+                                 (("train", Optional[VQTrainOverride], field(default=None)),))
+
+
+@dataclass
+class Vqvae:
+    stream: str = MISSING
+    streams: List[str] = MISSING
+    out_dir: str = MISSING
+    tokens_dir: str = MISSING
+    resume_dir: str = MISSING
+    model: VQModel = _group(VQModel)
+    tokenizers: Dict[str, TokenizerOverride] = MISSING   # type: ignore[valid-type]
+    loss: VQLoss = _group(VQLoss)
+    diagnostics: VQDiagnostics = _group(VQDiagnostics)
+    optim: VQOptim = _group(VQOptim)
+    train: VQTrain = _group(VQTrain)
+    metrics: VQMetrics = _group(VQMetrics)
+    eval: VQEval = _group(VQEval)
+    ablation: VQAblation = _group(VQAblation)
+
+
+# --------------------------------------------------------------------------- evaluator
+
+@dataclass
+class EvaluatorWidths:
+    word_size: int = MISSING
+    pos_size: int = MISSING
+    text_hidden: int = MISSING
+    coemb: int = MISSING
+    movement_hidden: int = MISSING
+    movement_latent: int = MISSING
+    motion_hidden: int = MISSING
+
+
+@dataclass
+class EvaluatorModel(EvaluatorWidths):
+    dropout: float = MISSING
+
+
+@dataclass
+class MovementPretrain:
+    enabled: bool = MISSING
+    window: int = MISSING
+    batch_size: int = MISSING
+    lr: float = MISSING
+    lambda_sparsity: float = MISSING
+    lambda_smooth: float = MISSING
+    max_steps: int = MISSING
+    max_epochs: int = MISSING
+    val_every_n_epochs: int = MISSING
+
+
+@dataclass
+class EvaluatorTrain:
+    batch_size: int = MISSING
+    lr: float = MISSING
+    negative_margin: float = MISSING
+    grad_clip: float = MISSING
+    max_steps: int = MISSING
+    max_epochs: int = MISSING
+    val_every_n_epochs: int = MISSING
+
+
+@dataclass
+class EvaluatorTrainer:
+    precision: str = MISSING
+    num_workers: int = MISSING
+
+
+@dataclass
+class EvaluatorReference:
+    checkpoint: Optional[str] = MISSING
+    glove_dir: Optional[str] = MISSING
+    mean: Optional[str] = MISSING
+    std: Optional[str] = MISSING
+    model: EvaluatorWidths = _group(EvaluatorWidths)
+
+
+@dataclass
+class Evaluator:
+    kind: str = MISSING
+    stream: str = MISSING
+    streams: List[str] = MISSING
+    out_dir: str = MISSING
+    val_split: str = MISSING
+    test_split: str = MISSING
+    text_input: str = MISSING
+    glove_dir: Optional[str] = MISSING
+    max_text_tokens: Optional[int] = MISSING
+    max_text_len: int = MISSING
+    max_motion_len: int = MISSING
+    unit_length: int = MISSING
+    drop_contacts: bool = MISSING
+    model: EvaluatorModel = _group(EvaluatorModel)
+    movement_pretrain: MovementPretrain = _group(MovementPretrain)
+    freeze_movement: bool = MISSING
+    train: EvaluatorTrain = _group(EvaluatorTrain)
+    trainer: EvaluatorTrainer = _group(EvaluatorTrainer)
+    reference: EvaluatorReference = _group(EvaluatorReference)
+
+
+# --------------------------------------------------------------------------- eval
+
+@dataclass
+class Multimodality:
+    replications: int = MISSING
+    num_texts: int = MISSING
+    times: int = MISSING
+
+
+@dataclass
+class EvalSources:
+    ground_truth: bool = MISSING
+    tokenizers: List[str] = MISSING
+    tokenizers_dir: str = MISSING
+    tokenizer_ckpt: Optional[str] = MISSING
+    generated: Any = _union(str, List[str])  # auto | [run folders]
+    generated_dir: str = MISSING
+
+
+@dataclass
+class Coherence:
+    enabled: bool = MISSING
+    sigma: float = MISSING
+    kappa: float = MISSING
+    window: int = MISSING
+    stride: Optional[int] = MISSING
+    tau_max: int = MISSING
+    eps: float = MISSING
+    beta_d: float = MISSING
+    beta_theta: float = MISSING
+    end_joints: Optional[Dict[str, int]] = MISSING
+    reference_split: str = MISSING
+    reference_max_clips: Optional[int] = MISSING
+
+
+@dataclass
+class Efficiency:
+    ait_samples: int = MISSING
+    ait_warmup: int = MISSING
+
+
+@dataclass
+class SigmaKappaGrid:
+    sigma: List[float] = MISSING
+    kappa: List[float] = MISSING
+
+
+@dataclass
+class WindowTauGrid:
+    window: List[int] = MISSING
+    tau_max: List[int] = MISSING
+
+
+@dataclass
+class Calibrate:
+    out_dir: str = MISSING
+    split: str = MISSING
+    max_clips: Optional[int] = MISSING
+    min_shift: int = MISSING
+    mix_mode: str = MISSING
+    freeze_part: str = MISSING
+    criterion: str = MISSING
+    sigma_kappa: SigmaKappaGrid = _group(SigmaKappaGrid)
+    window_tau: WindowTauGrid = _group(WindowTauGrid)
+    beta: List[float] = MISSING
+
+
+@dataclass
+class Eval:
+    out_dir: str = MISSING
+    split: str = MISSING
+    seed: int = MISSING
+    replications: int = MISSING
+    batch_size: int = MISSING
+    large_batch_size: int = MISSING
+    top_k: int = MISSING
+    diversity_times: int = MISSING
+    embed_batch_size: int = MISSING
+    max_motion_len: int = MISSING
+    unit_length: int = MISSING
+    device: str = MISSING
+    ci_z: float = MISSING
+    multimodality: Multimodality = _group(Multimodality)
+    mpjpe_scale: float = MISSING
+    sources: EvalSources = _group(EvalSources)
+    coherence: Coherence = _group(Coherence)
+    efficiency: Efficiency = _group(Efficiency)
+    calibrate: Calibrate = _group(Calibrate)
+
+
+# --------------------------------------------------------------------------- root
+
+@dataclass
+class Config:
+    seed: int = MISSING
+    progress: bool = MISSING
+    objective: Optional[str] = MISSING      # the metric a stage's Hydra app returns (null: all)
+    paths: Paths = _group(Paths)
+    dataset: Dataset = _group(Dataset)
+    tracking: Tracking = _group(Tracking)
+    trainer: Trainer = _group(Trainer)
+    text: Text = _group(Text)
+    part_texts: PartTexts = _group(PartTexts)
+    vqvae: Vqvae = _group(Vqvae)
+    evaluator: Evaluator = _group(Evaluator)
+    eval: Eval = _group(Eval)
+
+
+#: the config groups of conf/ and their schema
+SCHEMA_GROUPS: dict[str, type] = {"dataset": Dataset, "tracking": Tracking, "trainer": Trainer,
+                                  "text": Text, "part_texts": PartTexts, "vqvae": Vqvae,
+                                  "evaluator": Evaluator, "eval": Eval}
+
+
+# --------------------------------------------------------------------------- validation
+
+_NONE = type(None)
+
+
+def _unoptional(t) -> tuple[Any, bool]:
+    if typing.get_origin(t) is typing.Union:
+        args = [a for a in typing.get_args(t) if a is not _NONE]
+        if len(args) < len(typing.get_args(t)):
+            return (args[0] if len(args) == 1 else typing.Union[tuple(args)]), True
+    return t, False
+
+
+def _noun(t) -> str:
+    t, optional = _unoptional(t)
+    origin = typing.get_origin(t)
+    if origin in (list, List):
+        s = f"list of {_noun(typing.get_args(t)[0])}"
+    elif origin in (dict, Dict) or dataclasses.is_dataclass(t):
+        s = "mapping"
+    else:
+        s = {bool: "bool", int: "int", float: "number", str: "string", Any: "value"}.get(t, str(t))
+    return s + (" or null" if optional else "")
+
+
+def _describe(t) -> str:
+    s = _noun(t)
+    return ("an " if s[0] in "aeiou" else "a ") + s + (" (true/false)" if s == "bool" else "")
+
+
+def _short(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _join(prefix: str, key) -> str:
+    return f"{prefix}[{key}]" if isinstance(key, int) else (f"{prefix}.{key}" if prefix else str(key))
+
+
+def _is_missing(v) -> bool:
+    return isinstance(v, str) and v == MISSING
+
+
+def _fail(where: str, key: str, problem: str):
+    raise ConfigError(f"{where}: {key}: {problem}", key)
+
+
+def _matches(value, t) -> bool:
+    """Whether ``value`` is of schema type ``t`` (strict: no str -> number, no int -> bool)."""
+    if _is_missing(value):
+        return True
+    t, optional = _unoptional(t)
+    if value is None:
+        return optional
+    origin = typing.get_origin(t)
+    if t is Any:
+        return True
+    if t is bool:
+        return isinstance(value, bool)
+    if t is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if t is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if t is str:
+        return not isinstance(value, (list, tuple, dict, Mapping))
+    if origin is typing.Union:
+        return any(_matches(value, a) for a in typing.get_args(t))
+    if origin in (list, List):
+        return isinstance(value, (list, tuple)) and all(_matches(v, typing.get_args(t)[0]) for v in value)
+    if origin in (dict, Dict):
+        return isinstance(value, Mapping) and all(_matches(v, typing.get_args(t)[1]) for v in value.values())
+    return isinstance(value, Mapping)
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls) -> dict:
+    return typing.get_type_hints(cls)
+
+
+def _check(t, value, key: str, where: str, partial: bool, union: tuple = ()) -> None:
+    if _is_missing(value):
+        return
+    t, optional = _unoptional(t)
+    if value is None:
+        if not optional:
+            _fail(where, key, f"null is not allowed (expected {_describe(t)})")
+        return
+    if union:
+        if not any(_matches(value, u) for u in union):
+            _fail(where, key, f"{_short(value)} is not " + " or ".join(_describe(u) for u in union))
+        return
+    origin = typing.get_origin(t)
+    if dataclasses.is_dataclass(t):
+        if not isinstance(value, Mapping):
+            _fail(where, key, f"{_short(value)} is not a mapping (a group of keys)")
+        hints = _hints(t)
+        names = list(hints)
+        for k in value:
+            if k not in hints:
+                near = difflib.get_close_matches(str(k), names, n=1)
+                hint = f"did you mean {_join(key, near[0])}?" if near else "typo?"
+                raise ConfigError(f"{where}: unknown key {_join(key, k)} (not in the schema; {hint})",
+                                  _join(key, k))
+        for f in dataclasses.fields(t):
+            sub = _join(key, f.name)
+            if f.name in value:
+                _check(hints[f.name], value[f.name], sub, where, partial, f.metadata.get("union", ()))
+            elif not partial and f.default is not None:         # required (MISSING or a group)
+                raise ConfigError(f"{where}: missing key {sub} (required by the schema)", sub)
+    elif origin in (dict, Dict):
+        if not isinstance(value, Mapping):
+            _fail(where, key, f"{_short(value)} is not {_describe(t)}")
+        vt = typing.get_args(t)[1]
+        for k, v in value.items():
+            if not isinstance(k, str):
+                _fail(where, _join(key, k), f"key {k!r} is not a string")
+            _check(vt, v, _join(key, k), where, partial)
+    elif origin in (list, List):
+        if not isinstance(value, (list, tuple)):
+            _fail(where, key, f"{_short(value)} is not {_describe(t)}")
+        for i, v in enumerate(value):
+            _check(typing.get_args(t)[0], v, _join(key, i), where, partial)
+    elif not _matches(value, t):
+        quoted = isinstance(value, str) and _matches(_yaml_scalar(value), t)
+        _fail(where, key, f"{_short(value)} is not {_describe(t)}" + (" (a quoted string)" if quoted else ""))
+
+
+def _yaml_scalar(s: str):
+    import yaml
+    try:
+        return yaml.safe_load(s)
+    except yaml.YAMLError:
+        return s
+
+
+def _plain(cfg, where: str) -> dict:
+    try:
+        node = cfg if isinstance(cfg, (DictConfig, ListConfig)) else OmegaConf.create(cfg)
+        plain = OmegaConf.to_container(node, resolve=True)
+    except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", "") or ""
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ConfigError(f"{where}: {key + ': ' if key else ''}{msg}", key) from None
+    if not isinstance(plain, dict):
+        raise ConfigError(f"{where}: the config is not a mapping of keys (got {type(plain).__name__})")
+    return plain
+
+
+def validate(cfg, where: str = "config", *, partial: bool = False) -> DictConfig:
+    """Check ``cfg`` (a DictConfig or a plain mapping, interpolations resolved first) against
+    :class:`Config`; return it as a plain (non-struct) resolved DictConfig with the values as
+    given. Raises :class:`ConfigError` (a ValueError) whose one-line message starts with
+    ``where`` and names the dotted key. ``partial=True`` allows absent keys and groups
+    (hand-built test configs); unknown keys and wrong types still fail."""
+    plain = _plain(cfg, where)
+    _check(Config, plain, "", where, partial)
+    return OmegaConf.create(plain)

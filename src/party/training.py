@@ -1,0 +1,168 @@
+"""What every training stage shares: one trainer builder, one resume mechanism,
+one parameter counter, one file hasher, one device resolver.
+
+    trainer = build_trainer(cfg, max_steps=..., logger=lightning_logger(cfg, run),
+                            callbacks=[AtomicCheckpoint(ckpt, every)])
+
+``build_trainer`` honours ``trainer.*`` (accelerator, devices, num_nodes, strategy,
+precision, deterministic, log_every_n_steps) and the progress flag, so every training
+stage runs single-device, DDP on N devices or N nodes from config alone. A stage with
+its own ``<group>.trainer`` section (e.g. ``evaluator.trainer.precision``) passes it
+as ``section``: its keys win over ``trainer.*``.
+
+Resume: ``resume_dir(root, name, key)`` is a folder outside DVC outputs (DVC deletes
+outputs before it runs a stage) named by ``config_key(config, identity)``, a hash of
+everything that changes what a step computes plus the data's identity
+(``data_identity``: the index and normalisation files), so a killed run rerun with the
+same settings continues from ``last.ckpt`` there and a changed dataset never resumes
+an old run.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import torch
+
+log = logging.getLogger(__name__)
+
+# trainer.* keys passed to lightning.Trainer
+TRAINER_KEYS = ("accelerator", "devices", "num_nodes", "strategy", "precision", "deterministic",
+                "log_every_n_steps")
+
+
+# --------------------------------------------------------------------------- small shared pieces
+
+def count_params(module: torch.nn.Module, trainable_only: bool = False) -> int:
+    """Number of parameters of ``module`` (only those with ``requires_grad`` if asked)."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
+
+
+def file_sha(path: str | os.PathLike, n: int = 16) -> str:
+    """Short sha256 of a file's bytes (identity of data files)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:n]
+
+
+def resolve_device(name: str | None) -> torch.device:
+    """``auto``/``gpu``/``cuda``: CUDA when available (a warning when asked for and absent),
+    else the CPU; any other name is passed to ``torch.device``."""
+    if name in (None, "auto", "gpu", "cuda"):
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        if name in ("gpu", "cuda"):
+            log.warning("accelerator %s requested but CUDA is not available; using the CPU", name)
+        return torch.device("cpu")
+    return torch.device(name)
+
+
+# --------------------------------------------------------------------------- trainer
+
+def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
+    """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning."""
+    from omegaconf import OmegaConf
+
+    def plain(x):
+        return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else dict(x or {})
+
+    t = plain(cfg.trainer)
+    for k, v in plain(section).items():
+        if k in TRAINER_KEYS:
+            t[k] = v
+    return {k: t[k] for k in TRAINER_KEYS}
+
+
+def build_trainer(cfg, *, max_steps: int, logger=False, callbacks: Iterable = (),
+                  section: Mapping | None = None, **kw):
+    """The ``lightning.Trainer`` of every training stage (see the module docstring).
+
+    ``kw``: stage-specific Trainer arguments (validation cadence, gradient clipping,
+    ``default_root_dir``, ...). Lightning's own checkpointing and model summary are off:
+    stages checkpoint with ``AtomicCheckpoint`` and export their outputs themselves."""
+    import lightning as L
+
+    args = dict(max_steps=int(max_steps), logger=logger or False, callbacks=list(callbacks),
+                enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
+                enable_progress_bar=bool(cfg.progress), **trainer_kwargs(cfg, section))
+    args.update(kw)
+    return L.Trainer(**args)
+
+
+def _atomic_checkpoint_cls():
+    from lightning.pytorch.callbacks import Callback
+
+    class AtomicCheckpoint(Callback):
+        """Save ``path`` every ``every`` iterations and at the end, via a temp name + rename."""
+
+        def __init__(self, path: Path, every: int):
+            self.path, self.every = Path(path), int(every)
+
+        def _save(self, trainer) -> None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.path.with_name(f".{self.path.name}.tmp")
+            trainer.save_checkpoint(tmp, weights_only=False)   # the full state: a resume continues exactly
+            if trainer.is_global_zero:
+                os.replace(tmp, self.path)
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+            if self.every > 0 and trainer.global_step % self.every == 0:
+                self._save(trainer)
+
+        def on_train_end(self, trainer, pl_module) -> None:
+            self._save(trainer)
+
+    AtomicCheckpoint.__qualname__ = "AtomicCheckpoint"
+    return AtomicCheckpoint
+
+
+def __getattr__(name: str):
+    # ``AtomicCheckpoint`` is built on first use: importing lightning is slow and most
+    # users of this module (parameter counts, hashes) do not need it
+    if name == "AtomicCheckpoint":
+        cls = _atomic_checkpoint_cls()
+        globals()[name] = cls
+        return cls
+    raise AttributeError(name)
+
+
+# --------------------------------------------------------------------------- resume
+
+def _numbers_as_floats(x):
+    """``0`` and ``0.0`` (a command-line ``key=0`` against a config's ``0.0``) hash alike."""
+    if isinstance(x, Mapping):
+        return {k: _numbers_as_floats(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_numbers_as_floats(v) for v in x]
+    return float(x) if isinstance(x, int) and not isinstance(x, bool) else x
+
+
+def config_key(config: Mapping[str, Any], identity: Mapping[str, Any] = ()) -> str:
+    """Short hash of everything that makes two training runs the same run: the settings
+    that change what a step computes (``config``) and what it reads (``identity``)."""
+    blob = json.dumps(_numbers_as_floats({**config, **dict(identity)}), sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+def data_identity(index_path: str | os.PathLike, root: str | os.PathLike,
+                  files: tuple[str, ...] = ("Mean.npy", "Std.npy")) -> dict[str, Any]:
+    """The data's identity: the clip list (index file) and the normalisation statistics
+    (regenerated features with the same clip names must not resume an old run)."""
+    return {"index": file_sha(index_path), "norm": [file_sha(Path(root) / f) for f in files]}
+
+
+def resume_dir(root: str | os.PathLike, name: str, key: str) -> Path:
+    """``<root>/<name>/<key>``: where a run with that key checkpoints (``last.ckpt``)."""
+    return Path(root) / name / key
+
+
+def resume_checkpoint(folder: Path, enabled: bool) -> Path | None:
+    """``folder/last.ckpt`` when resuming is on and it exists, else None."""
+    ckpt = Path(folder) / "last.ckpt"
+    return ckpt if enabled and ckpt.exists() else None

@@ -1,0 +1,87 @@
+"""Reading stage outputs (``party.io.read_json``) and the SQLite cache setup (``party.sqlite``)
+shared by the index, the part-text and embedding caches and stores."""
+from __future__ import annotations
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from party.data.index import load_index
+from party.io import read_json, require
+from party.sqlite import SQLiteCache, connect, select_in
+from party.text.cache import PartTextCache, load_part_texts
+from party.text.store import EmbeddingCache, EmbeddingStore
+
+
+def test_read_json_says_what_to_rerun(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"a\.json: thing not found; run `party make_a`"):
+        read_json(tmp_path / "a.json", "party make_a", what="thing")
+    (tmp_path / "a.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"a\.json: not valid JSON .*; rerun `party make_a`"):
+        read_json(tmp_path / "a.json", "party make_a")
+    (tmp_path / "a.json").write_text('{"x": [1, 2]}')
+    assert read_json(tmp_path / "a.json", "party make_a") == {"x": [1, 2]}
+    assert require(tmp_path / "a.json", "party make_a") == tmp_path / "a.json"
+
+
+def test_stage_outputs_name_the_stage_to_rerun(tmp_path):
+    with pytest.raises(FileNotFoundError, match="prepared index not found; run `party prepare`"):
+        load_index(tmp_path)
+    (tmp_path / "index.json").write_text("[")
+    with pytest.raises(ValueError, match="rerun `party prepare`"):
+        load_index(tmp_path)
+    with pytest.raises(FileNotFoundError, match="run `party cache_part_texts`"):
+        load_part_texts(tmp_path)
+    with pytest.raises(FileNotFoundError, match="current.json.*run `party embed_texts`"):
+        EmbeddingStore.open(tmp_path)
+    enc = tmp_path / "enc"
+    EmbeddingStore.write(enc, ["a", "b"], np.ones((2, 3)), {"encoder_id": "enc"})
+    (enc / "keys.json").write_text("{")
+    with pytest.raises(ValueError, match=r"keys\.json: not valid JSON .*rerun `party embed_texts`"):
+        EmbeddingStore.open(tmp_path)
+    (enc / "embeddings.npy").unlink()
+    (enc / "keys.json").write_text("{}")
+    with pytest.raises(FileNotFoundError, match=r"embeddings\.npy: not found; run `party embed_texts`"):
+        EmbeddingStore.open(enc)
+
+
+def test_part_texts_are_checked_for_the_configured_parts(tmp_path):
+    path = tmp_path / "part_texts.json"
+    path.write_text(json.dumps({"c1": {"arms": "a", "legs": "b"}, "c2": {"arms": "c", "legs": "d"}}))
+    assert load_part_texts(path)["c2"] == {"arms": "c", "legs": "d"}
+    assert load_part_texts(tmp_path, ["legs"])["c1"]["legs"] == "b"
+    with pytest.raises(ValueError, match="'arms'/'torso'"):
+        load_part_texts(path, ["arms", "torso"])
+    path.write_text(json.dumps({"c1": {"arms": "a", "legs": "b"}, "c2": {"arms": "c", "legs": ""}}))
+    with pytest.raises(ValueError, match="'c2' lacks non-empty 'arms'/'legs' texts"):
+        load_part_texts(path)
+
+
+@pytest.mark.parametrize("cls, message", [(PartTextCache, r"not a usable part-text cache \(.*\)$"),
+                                          (EmbeddingCache, r"not a usable embedding cache .*; delete it to rebuild")])
+def test_caches_share_one_sqlite_setup(tmp_path, cls, message):
+    path = tmp_path / "sub" / "cache.sqlite"
+    with cls(path) as cache:                                   # creates the folder and the schema
+        assert cache.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert cache.db.execute("PRAGMA synchronous").fetchone()[0] == 1          # NORMAL
+        assert cache.count() == 0
+    bad = tmp_path / "bad.sqlite"
+    bad.write_bytes(b"this is not a database" * 100)
+    with pytest.raises(sqlite3.DatabaseError, match=message):
+        cls(bad)
+
+
+def test_select_in_asks_in_chunks(tmp_path):
+    class Numbers(SQLiteCache):
+        kind = "number table"
+        schema = ("CREATE TABLE IF NOT EXISTS n (tag TEXT, k INTEGER)",)
+
+    with Numbers(tmp_path / "n.sqlite") as t:
+        with t.db:
+            t.db.executemany("INSERT INTO n VALUES (?, ?)", [("x", i) for i in range(25)] + [("y", 3)])
+        rows = list(select_in(t.db, "SELECT k FROM n WHERE tag=? AND k IN ({})", ["x"], list(range(0, 30, 2)), 4))
+        assert sorted(k for (k,) in rows) == list(range(0, 25, 2))
+    with pytest.raises(sqlite3.DatabaseError, match="not a usable number table"):
+        connect(tmp_path, ["SELECT 1"], "number table")         # a folder is no database

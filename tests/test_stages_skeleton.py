@@ -1,0 +1,128 @@
+"""The stage skeleton (party.stage), the stage/library boundary and the CLI's return value."""
+import ast
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from party.config import write_params
+from party.overrides import DivergingOverride, check_overrides
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = ROOT / "src" / "party" / "stages"
+BIN = Path(sys.executable).parent
+
+
+def _stage_imports(path: Path) -> list[str]:
+    """Modules of party.stages that ``path`` imports (absolute or relative)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found += [a.name for a in node.names if a.name.startswith("party.stages.")]
+        elif isinstance(node, ast.ImportFrom):
+            mod = node.module or ""
+            if node.level:                                   # from . import x / from .x import y
+                found.append(f"party.stages.{mod or ','.join(a.name for a in node.names)}")
+            elif mod == "party.stages":
+                found += [f"party.stages.{a.name}" for a in node.names]
+            elif mod.startswith("party.stages."):
+                found.append(mod)
+    return found
+
+
+def test_no_stage_imports_another_stage():
+    offenders = {p.name: _stage_imports(p) for p in sorted(STAGES.glob("*.py"))}
+    offenders = {k: v for k, v in offenders.items() if v}
+    assert not offenders, f"stage modules import other stages (move the code into the library): {offenders}"
+
+
+def test_the_import_check_can_fail(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("from party.stages.evaluate import load_evaluators\nfrom party.stages import train_vqvae\n"
+                   "from . import prepare\n")
+    assert _stage_imports(bad) == ["party.stages.evaluate", "party.stages.train_vqvae", "party.stages.prepare"]
+
+
+def test_every_stage_is_built_with_the_skeleton():
+    import importlib
+
+    from party.cli import available_stages
+    for name in available_stages():
+        mod = importlib.import_module(f"party.stages.{name}")
+        assert getattr(mod.run, "stage_name", None) == name, f"party.stages.{name}.run is not @stage({name!r})"
+
+
+def _params(tmp_path: Path, *overrides: str) -> Path:
+    p = tmp_path / "params.yaml"
+    write_params(p, [f"paths.prepared={tmp_path / 'prepared'}", f"tracking.dir={tmp_path / 'mlruns'}",
+                     "progress=false", *overrides], ROOT / "conf")
+    return p
+
+
+def _runs(db: Path) -> list[dict]:
+    with sqlite3.connect(db) as con:
+        rows = con.execute("select run_uuid, name, status from runs").fetchall()
+        tags = con.execute("select run_uuid, key, value from tags").fetchall()
+    out = {r: {"name": n, "status": s, "tags": {}} for r, n, s in rows}
+    for r, k, v in tags:
+        out[r]["tags"][k] = v
+    return list(out.values())
+
+
+def test_a_stage_that_raises_leaves_a_failed_run_with_the_error(tmp_path):
+    from party.config import load_params
+    from party.stages import cache_part_texts
+
+    cfg = load_params(_params(tmp_path))          # no prepared index: the stage fails at its first read
+    with pytest.raises(Exception) as err:
+        cache_part_texts.run(cfg)
+    runs = [r for r in _runs(tmp_path / "mlruns" / "mlflow.db") if r["tags"].get("party.stage") == "cache_part_texts"]
+    assert len(runs) == 1 and runs[0]["status"] == "FAILED", runs
+    assert "index.json" in runs[0]["tags"]["party.error"] and type(err.value).__name__ in runs[0]["tags"]["party.error"]
+    art = list((tmp_path / "mlruns" / "artifacts").rglob("error.txt"))
+    assert art and "Traceback" in art[0].read_text()
+
+
+def test_overriding_a_source_key_at_stage_time_is_refused():
+    with pytest.raises(DivergingOverride, match=r"text\.index_path"):
+        check_overrides(["paths.prepared=/elsewhere"], "embed_texts", ROOT / "conf")
+    # overriding the derived keys too says what the user means: allowed
+    check_overrides(["paths.prepared=/x", "text.index_path=/x/index.json", "part_texts.index_path=/x/index.json"],
+                    "embed_texts", ROOT / "conf")
+    check_overrides(["vqvae.train.max_steps=5"], "train_vqvae", ROOT / "conf")     # nothing derived from it
+
+
+RECORDER = '''
+import json
+from hydra.experimental.callback import Callback
+
+
+class Recorder(Callback):
+    def __init__(self, path):
+        self.path = path
+
+    def on_job_end(self, config, job_return, **kw):
+        with open(self.path, "a") as f:
+            f.write(json.dumps({"objective": config.objective, "value": job_return.return_value}) + "\\n")
+'''
+
+
+@pytest.mark.slow
+def test_multirun_sweeper_receives_the_stage_metric(tmp_path):
+    """`party prepare --multirun` (Hydra's basic sweeper): each job's return value is the stage's
+    metrics dict, or the float `objective` names (what Optuna's sweeper optimises)."""
+    (tmp_path / "recorder.py").write_text(RECORDER)
+    params = _params(tmp_path, "dataset.synthetic.n_motions=12", "tracking.n_render_samples=0")
+    out = tmp_path / "returns.jsonl"
+    env = os.environ | {"PARTY_PARAMS": str(params), "PYTHONPATH": str(tmp_path), "PARTY_NO_RENDER": "1"}
+    res = subprocess.run([str(BIN / "party"), "prepare", "--multirun", "objective=null,n_rejected",
+                          "+hydra.callbacks.rec._target_=recorder.Recorder", f"+hydra.callbacks.rec.path={out}"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    got = {r["objective"]: r["value"] for r in map(json.loads, out.read_text().splitlines())}
+    assert got["n_rejected"] == 0.0
+    assert got[None]["counts"]["train"]["clips"] > 0 and got[None]["n_rejected"] == 0
