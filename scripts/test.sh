@@ -5,5 +5,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+bash scripts/system_deps.sh      # blender for the BVH import check (skips cleanly without it)
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 exec .venv/bin/python -m pytest "$@"

@@ -54,9 +54,12 @@ def pipeline(request, tmp_path_factory):
 @pytest.mark.slow
 def test_dvc_repro_runs_every_stage(pipeline):
     work, env, repro = pipeline
-    streams = yaml.safe_load((work / "params.yaml").read_text())["dataset"]["parts"]["streams"]
+    params = yaml.safe_load((work / "params.yaml").read_text())
+    streams = params["dataset"]["parts"]["streams"]
+    methods = list(params["generator"]["methods"])
     for stage in ("prepare", "cache_part_texts", "embed_texts", *(f"train_vqvae@{s}" for s in streams),
-                  "extract_tokens", *(f"train_evaluator@{s}" for s in streams), "evaluate"):
+                  "extract_tokens", *(f"train_evaluator@{s}" for s in streams),
+                  *(f"train_generator@{m}" for m in methods), *(f"generate@{m}" for m in methods), "evaluate"):
         assert f"'{stage}'" in repro.stdout, stage
     assert (work / "data/prepared/index.json").exists()
     assert json.loads((work / "data/part_texts/part_texts.json").read_text())
@@ -65,7 +68,29 @@ def test_dvc_repro_runs_every_stage(pipeline):
         assert (work / f"data/evaluators/{s}/finest.tar").exists()
     metrics = json.loads((work / "data/eval/metrics.json").read_text())
     assert metrics, "evaluate wrote no metrics"
-    assert (work / "data/eval/tables.md").read_text().strip()
+    for m in methods:                     # every generator scored beside ground truth
+        assert (work / f"data/generators/{m}/model.pt").exists()
+        assert m in metrics["results"] and "holistic" in metrics["results"][m], m
+    tables = (work / "data/eval/tables.md").read_text()
+    assert all(f"| {m} |" in tables for m in methods)
+
+
+@pytest.mark.slow
+def test_generate_for_people_writes_motion_gif_and_bvh(pipeline):
+    """`party generate` with texts: per text features, joints, a GIF and a BVH."""
+    work, env, _ = pipeline
+    out = work / "outputs" / "people"
+    _sh([str(BIN / "party"), "generate", "generator.generate.texts=[a person waves with the left hand,a person kicks]",
+         "generator.generate.frames=[48,60]", f"generator.generate.out={out}"], work, env | {"PARTY_NO_RENDER": ""})
+    listed = json.loads((out / "generated.json").read_text())
+    assert [x["text"] for x in listed] == ["a person waves with the left hand", "a person kicks"]
+    for x in listed:
+        for k in ("feats", "joints", "gif", "bvh"):
+            assert Path(x[k]).is_file(), (k, x)
+        assert 40 <= x["frames"] <= 60
+    bad = subprocess.run([str(BIN / "party"), "generate", "generator.generate.texts=[' ']"], cwd=work, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "empty" in bad.stderr
 
 
 @pytest.mark.slow
@@ -78,6 +103,7 @@ def test_rerun_is_cached_and_runs_are_tracked(pipeline):
     db = work / "mlruns/mlflow.db"
     with sqlite3.connect(db) as con:
         stages = {v for (v,) in con.execute("select value from tags where key = 'party.stage'")}
-    assert {"prepare", "cache_part_texts", "train_vqvae", "train_evaluator", "evaluate"} <= stages
+    assert {"prepare", "cache_part_texts", "train_vqvae", "train_evaluator", "train_generator", "generate",
+            "evaluate"} <= stages
     shown = _sh([str(BIN / "dvc"), "metrics", "show", "--json"], work, env)
     assert "metrics.json" in shown.stdout

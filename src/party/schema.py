@@ -577,6 +577,111 @@ class Eval:
     calibrate: Calibrate = _group(Calibrate)
 
 
+# --------------------------------------------------------------------------- generator
+
+@dataclass
+class GenMethod:                            # generator.methods.<name>
+    kind: str = MISSING                     # party | holistic | partwise | random (trivial baseline)
+    pg: bool = MISSING
+    ptg: bool = MISSING
+    hpf: bool = MISSING
+    aux: bool = MISSING
+
+
+@dataclass
+class GenModel:
+    dim: int = MISSING
+    part_layers: int = MISSING
+    holistic_layers: int = MISSING
+    heads: int = MISSING
+    mlp_ratio: int = MISSING
+    dropout: float = MISSING
+    max_tokens: int = MISSING
+    ptg_k: int = MISSING
+    ptg_hidden: int = MISSING
+    pg_window: int = MISSING
+    pg_hidden: int = MISSING
+    hpf_heads: int = MISSING
+    hpf_head_dim: int = MISSING
+
+
+@dataclass
+class GenLoss:
+    lambda_div: float = MISSING
+    tau: float = MISSING
+    lambda_aux: float = MISSING
+    no_movement_text: str = MISSING
+
+
+@dataclass
+class GenCorruption:
+    enabled: bool = MISSING
+    prob: float = MISSING
+
+
+@dataclass
+class GenOptim:
+    lr: float = MISSING
+    lr_after: float = MISSING
+    milestone: int = MISSING
+    betas: List[float] = MISSING
+    weight_decay: float = MISSING
+    grad_clip: float = MISSING
+
+
+@dataclass
+class GenTrain:
+    batch_size: int = MISSING
+    val_split: str = MISSING
+    max_steps: int = MISSING
+    val_every: int = MISSING
+    ckpt_every: int = MISSING
+    resume: bool = MISSING
+    num_workers: int = MISSING
+    threads: Optional[int] = MISSING
+    log_checkpoint: bool = MISSING
+    render_samples: int = MISSING
+    prompts: List[str] = MISSING
+
+
+@dataclass
+class GenGenerate:
+    split: str = MISSING
+    repeats: int = MISSING
+    batch_size: int = MISSING
+    sampling: str = MISSING                 # greedy | sample
+    temperature: float = MISSING
+    top_k: Optional[int] = MISSING
+    top_p: Optional[float] = MISSING
+    seed: int = MISSING
+    use_cache: bool = MISSING
+    lengths: str = MISSING                  # gt | free
+    texts: Optional[List[str]] = MISSING
+    texts_file: Optional[str] = MISSING
+    frames: Optional[List[int]] = MISSING
+    run: Optional[str] = MISSING
+    out: str = MISSING
+    formats: List[str] = MISSING
+
+
+@dataclass
+class Generator:
+    method: str = MISSING
+    methods: Dict[str, GenMethod] = MISSING
+    streams: List[str] = MISSING
+    tokens_dir: str = MISSING
+    tokenizers_dir: str = MISSING
+    out_dir: str = MISSING
+    resume_dir: str = MISSING
+    generated_dir: str = MISSING
+    model: GenModel = _group(GenModel)
+    loss: GenLoss = _group(GenLoss)
+    corruption: GenCorruption = _group(GenCorruption)
+    optim: GenOptim = _group(GenOptim)
+    train: GenTrain = _group(GenTrain)
+    generate: GenGenerate = _group(GenGenerate)
+
+
 # --------------------------------------------------------------------------- root
 
 @dataclass
@@ -593,12 +698,13 @@ class Config:
     vqvae: Vqvae = _group(Vqvae)
     evaluator: Evaluator = _group(Evaluator)
     eval: Eval = _group(Eval)
+    generator: Generator = _group(Generator)
 
 
 #: the config groups of conf/ and their schema
 SCHEMA_GROUPS: dict[str, type] = {"dataset": Dataset, "tracking": Tracking, "trainer": Trainer,
                                   "text": Text, "part_texts": PartTexts, "vqvae": Vqvae,
-                                  "evaluator": Evaluator, "eval": Eval}
+                                  "evaluator": Evaluator, "eval": Eval, "generator": Generator}
 
 
 # --------------------------------------------------------------------------- validation

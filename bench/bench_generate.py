@@ -1,0 +1,109 @@
+"""Generation speed of the ParTY generator: KV cache against full recomputation, batch 32 against
+batch 1, measured in the same run on the paper model dims (random weights).
+
+    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3] [--methods party,holistic,partwise]
+                                   [--text-dim 512] [--threads 1] [--device cpu]
+
+Model numbers come from conf/generator/paper.yaml (``model``, ``methods``); vocabularies and
+code windows from conf/vqvae/paper.yaml (``tokenizers``). Every sample is forced to the full
+length (frames // w codes per stream), so every run generates the same number of tokens.
+Prints, per method: parameters per module, average inference time per sample at batch 1 and
+samples/s at batch 32, with and without the cache, and the ratios (cache vs no cache at batch 1;
+batch-32 per-sample throughput vs batch 1). Nothing is asserted (speed is machine-dependent);
+cached and recomputed tokens are checked equal so the comparison is like for like.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from party.generator import GeneratorSpec, PartyGenerator
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def timed(model: PartyGenerator, c: torch.Tensor, lengths: dict, use_cache: bool, seed: int) -> tuple[float, dict]:
+    sync(c.device)
+    t0 = time.perf_counter()
+    out = model.generate(c, lengths=lengths, sampling="sample", generator=torch.Generator(c.device).manual_seed(seed),
+                         use_cache=use_cache)
+    sync(c.device)
+    return time.perf_counter() - t0, out
+
+
+def run(model: PartyGenerator, batch: int, reps: int, use_cache: bool, frames: int, text_dim: int,
+        device: torch.device) -> tuple[float, list]:
+    """Total seconds for ``reps`` batches of ``batch`` samples (after one warm-up batch)."""
+    lengths = {s: torch.full((batch,), frames // w, device=device) for s, w in model.spec.windows.items()}
+    g = torch.Generator().manual_seed(0)
+    cs = [torch.randn(batch, text_dim, generator=g).to(device) for _ in range(reps + 1)]
+    timed(model, cs[0], lengths, use_cache, 0)
+    total, outs = 0.0, []
+    for i, c in enumerate(cs[1:]):
+        dt, out = timed(model, c, lengths, use_cache, i + 1)
+        total += dt
+        outs.append(out)
+    for out in outs:                                 # forced lengths really generated the full length
+        for s, rows in out.items():
+            assert all(len(r) == int(lengths[s][0]) for r in rows), s
+    return total, outs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=196)
+    ap.add_argument("--n1", type=int, default=20, help="samples timed at batch 1")
+    ap.add_argument("--n32", type=int, default=3, help="batches of 32 timed")
+    ap.add_argument("--methods", default="party,holistic,partwise")
+    ap.add_argument("--text-dim", type=int, default=512, help="CLIP ViT-B/32 text embedding width")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    device = torch.device(a.device)
+    gen_cfg = OmegaConf.load(REPO / "conf/generator/paper.yaml")
+    tok_cfg = OmegaConf.load(REPO / "conf/vqvae/paper.yaml").tokenizers
+    vocab = {s: int(t.codebook_size) for s, t in tok_cfg.items()}
+    windows = {s: int(t.window) for s, t in tok_cfg.items()}
+    print(f"{a.frames} frames: " + ", ".join(f"{s} {a.frames // w} codes (w {w}, K {vocab[s]})"
+                                            for s, w in windows.items())
+          + f"; model {dict(gen_cfg.model)}; device {device}, {torch.get_num_threads()} thread(s)")
+    for name in a.methods.split(","):
+        spec = GeneratorSpec.from_config(gen_cfg.model, gen_cfg.loss, gen_cfg.methods[name], vocab, windows,
+                                         a.text_dim)
+        torch.manual_seed(0)
+        model = PartyGenerator(spec).to(device).eval()
+        counts = model.param_counts()
+        print(f"\n[{name}] params: " + ", ".join(f"{k} {v / 1e6:.3f}M" for k, v in counts.items() if v))
+        res = {}
+        for batch, reps in ((1, a.n1), (32, a.n32)):
+            for use_cache in (True, False):
+                total, outs = run(model, batch, reps, use_cache, a.frames, a.text_dim, device)
+                res[batch, use_cache] = (total / (batch * reps), outs)
+        for batch in (1, 32):                          # like for like: same seeds, same tokens
+            for (x, y) in zip(res[batch, True][1], res[batch, False][1]):
+                assert all([r.tolist() for r in x[s]] == [r.tolist() for r in y[s]] for s in x), (name, batch)
+        print(f"{'':22s} {'ms/sample':>10s} {'samples/s':>10s}")
+        for batch in (1, 32):
+            for use_cache in (True, False):
+                per = res[batch, use_cache][0]
+                label = f"batch {batch:2d} {'cache' if use_cache else 'no cache':8s}"
+                print(f"{label:22s} {per * 1e3:10.2f} {1 / per:10.1f}")
+        b1c, b1n, b32c = res[1, True][0], res[1, False][0], res[32, True][0]
+        b32n = res[32, False][0]
+        print(f"KV cache vs recomputation: {b1n / b1c:.1f}x at batch 1, {b32n / b32c:.1f}x at batch 32")
+        print(f"batch 32 vs batch 1 per-sample throughput: {b1c / b32c:.1f}x with the cache, "
+              f"{b1n / b32n:.1f}x without")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,199 @@
+"""Text → codes → motion: decoding a trained generator's codes and writing generated runs.
+
+- ``Decoder``: the stream tokenizers of a generator. ``party`` / ``holistic`` methods
+  decode the holistic codes with the holistic tokenizer (the whole feature vector);
+  ``partwise`` decodes Arms and Legs with their own tokenizers and composes them through
+  the part layout's inverse (``PartLayout.merge``; the root channels both carry are
+  averaged, the backbone channels neither carries come from the dataset mean pose).
+- ``generate_run``: the ``data/generated/<method>/`` folder ``evaluate`` reads (see
+  ``party.evaluation.sources``): one sample per clip of ``generator.generate.split`` and
+  repeat, its first caption, raw features, the method's switches and efficiency figures
+  (parameters, average inference time per sample at batch 1).
+- ``generate_texts``: what ``party generate generate.texts=[...]`` writes for people (features,
+  joints, a stick-figure GIF titled with the text and a BVH per text).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from party.generator.data import crop_lengths
+from party.io import atomic_dir, write_json
+
+log = logging.getLogger(__name__)
+
+
+class Decoder:
+    def __init__(self, tokenizers_dir: str | Path, kind: str, ctx, streams: Sequence[str]):
+        from party.tokenizers import load_tokenizer
+        self.kind, self.layout = kind, ctx.layout
+        whole = ctx.layout.whole_stream
+        need = [whole] if kind != "partwise" else [s for s in streams if s != whole]
+        self.toks = {s: load_tokenizer(Path(tokenizers_dir) / s).eval() for s in need}
+        self.mean = np.asarray(ctx.normalizer.mean, dtype=np.float32)
+        self.whole = whole
+
+    @torch.no_grad()
+    def __call__(self, codes: Mapping[str, torch.Tensor]) -> np.ndarray:
+        """Codes of one sample {stream: (n,)} -> raw features (T, D)."""
+        if self.kind != "partwise":
+            return self.toks[self.whole].detokenize(codes[self.whole]).cpu().numpy()
+        pieces = {s: t.detokenize(codes[s]).cpu().numpy() for s, t in self.toks.items()}
+        T = min(len(p) for p in pieces.values())
+        base = np.broadcast_to(self.mean, (T, len(self.mean))).copy()
+        return self.layout.merge({s: p[:T] for s, p in pieces.items()}, base=base).astype(np.float32)
+
+
+def _sampling_kw(gcfg) -> dict:
+    return {"sampling": gcfg.sampling, "temperature": gcfg.temperature, "top_k": gcfg.top_k, "top_p": gcfg.top_p,
+            "use_cache": gcfg.use_cache}
+
+
+def _target_lengths(stores, clip_ids: Sequence[str], windows, max_tokens: int) -> dict[str, torch.Tensor]:
+    out: dict[str, list[int]] = {s: [] for s in stores}
+    for cid in clip_ids:
+        n = crop_lengths({s: len(st.get(cid)) for s, st in stores.items()}, windows, max_tokens - 1)
+        for s in stores:
+            out[s].append(max(1, n[s]))
+    return {s: torch.tensor(v) for s, v in out.items()}
+
+
+def generate_batches(model, text_emb: np.ndarray, lengths: Mapping[str, torch.Tensor] | None, gcfg, decode,
+                     progress: bool) -> list[np.ndarray]:
+    """Raw features of every row of ``text_emb`` (batches of ``gcfg.batch_size``, seeded)."""
+    gen = torch.Generator().manual_seed(gcfg.seed)
+    out: list[np.ndarray] = []
+    B = gcfg.batch_size
+    for s in tqdm(range(0, len(text_emb), B), desc="generate", disable=not progress, unit="batch"):
+        c = torch.as_tensor(np.asarray(text_emb[s:s + B]), dtype=torch.float32)
+        lb = None if lengths is None else {k: v[s:s + B] for k, v in lengths.items()}
+        codes = model.generate(c, lb, generator=gen, **_sampling_kw(gcfg))
+        for i in range(len(c)):
+            out.append(decode({k: v[i] for k, v in codes.items()}))
+    return out
+
+
+def measure_ait(model, text_emb: np.ndarray, lengths, gcfg, decode, n: int, warmup: int) -> float:
+    """Milliseconds per sample at batch 1 (generation + decoding), averaged over ``n`` samples."""
+    gen = torch.Generator().manual_seed(gcfg.seed)
+    times = []
+    for i in range(warmup + n):
+        c = torch.as_tensor(np.asarray(text_emb[i % len(text_emb)][None]), dtype=torch.float32)
+        lb = None if lengths is None else {k: v[i % len(text_emb)][None] for k, v in lengths.items()}
+        t0 = time.perf_counter()
+        codes = model.generate(c, lb, generator=gen, **_sampling_kw(gcfg))
+        decode({k: v[0] for k, v in codes.items()})
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.mean(times))
+
+
+def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
+    """Write ``out_dir`` (index.json + one .npy per sample) for ``evaluate``; returns the summary."""
+    from party.data.context import load_context
+    from party.generator.data import open_token_stores
+    from party.generator.train import load_generator
+    from party.text.store import EmbeddingStore
+
+    g, gc = cfg.generator, cfg.generator.generate
+    model, meta = load_generator(Path(g.out_dir) / method)
+    ctx = load_context(cfg)
+    clips = ctx.index.clips(gc.split)
+    if not clips:
+        raise ValueError(f"{ctx.index.path}: split {gc.split!r} has no clips (generator.generate.split)")
+    rows = [(c["id"], c["captions"][0]["caption"], r) for c in clips for r in range(gc.repeats)]
+    emb = EmbeddingStore.open(cfg.text.embeddings_dir).get([cap for _, cap, _ in rows])
+    decode = Decoder(g.tokenizers_dir, model.spec.kind, ctx, meta["streams"])
+    lengths = None
+    if gc.lengths == "gt":
+        stores = open_token_stores(g.tokens_dir, [s for s in meta["streams"] if s in model.spec.streams])
+        lengths = _target_lengths(stores, [cid for cid, _, _ in rows], meta["windows"], model.spec.max_tokens)
+    elif gc.lengths != "free":
+        raise ValueError(f"generator.generate.lengths must be gt|free, got {gc.lengths!r}")
+    t0 = time.time()
+    feats = generate_batches(model, emb, lengths, gc, decode, progress)
+    seconds = time.time() - t0
+    e = cfg.eval.efficiency
+    ait = measure_ait(model, emb, lengths, gc, decode, min(e.ait_samples, len(rows)), e.ait_warmup)
+    counts = model.param_counts()
+    method_cfg = g.methods[method]
+    index = {"name": method, "format": "features", "normalized": False, "method": method,
+             "kind": model.spec.kind, "params": counts["total"], "param_counts": counts, "ait_ms": round(ait, 3),
+             "samples": []}
+    if model.spec.kind == "party":
+        index["switches"] = {k: bool(method_cfg[k]) for k in ("pg", "ptg", "hpf")}
+    with atomic_dir(out_dir) as tmp:
+        for i, ((cid, cap, r), f) in enumerate(zip(rows, feats)):
+            name = f"{i:05d}.npy"
+            np.save(tmp / name, f.astype(np.float32), allow_pickle=False)
+            index["samples"].append({"clip_id": cid, "caption": cap, "file": name, "repeat": r})
+        write_json(tmp / "index.json", index)
+    lens = [len(f) for f in feats]
+    return {"method": method, "samples": len(rows), "seconds": round(seconds, 2), "ait_ms": round(ait, 3),
+            "samples_per_s": round(len(rows) / max(seconds, 1e-9), 2), "frames_mean": float(np.mean(lens)),
+            "params": counts["total"]}
+
+
+def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Sequence[int | None] | None,
+                   out_dir: str | Path, formats: Sequence[str], progress: bool) -> list[dict]:
+    """People's generation: each text -> features, joints, GIF (titled) and BVH under ``out_dir``."""
+    from party.data.context import load_context
+    from party.generator.export import slug, write_outputs
+    from party.generator.train import load_generator
+
+    bad = [i for i, t in enumerate(texts) if not str(t).strip()]
+    if bad:
+        raise ValueError(f"generate.texts: text {bad[0]} is empty")
+    model, meta = load_generator(method_dir)
+    if model.spec.kind == "random":
+        raise ValueError(f"{method_dir}: the random-codes baseline does not read texts; pick a trained method")
+    ctx = load_context(cfg)
+    emb = embed_texts(cfg, list(texts))
+    lengths = None
+    if frames is not None and any(f is not None for f in frames):
+        lengths = {}
+        for s in model.spec.streams:
+            w = meta["windows"][s]
+            n = [max(1, int(f) // w) if f is not None else None for f in frames]
+            if any(x is not None and not 1 <= x <= model.spec.max_tokens - 1 for x in n):
+                lo, hi = w, (model.spec.max_tokens - 1) * w
+                raise ValueError(f"generate.frames: lengths must lie in [{lo}, {hi}] frames for stream {s} "
+                                 f"(window {w}, generator.model.max_tokens {model.spec.max_tokens}); got {list(frames)}")
+            if any(x is None for x in n):
+                raise ValueError("generate.frames: give a length for every text or none")
+            lengths[s] = torch.tensor(n)
+    decode = Decoder(meta["tokenizers_dir"], model.spec.kind, ctx, meta["streams"])
+    feats = generate_batches(model, emb, lengths, cfg.generator.generate, decode, progress)
+    out = []
+    for i, (t, f) in enumerate(zip(texts, feats)):
+        paths = write_outputs(out_dir, slug(t, i), f, ctx.index.skeleton, ctx.n_joints, ctx.index.fps, t,
+                              formats=tuple(formats))
+        out.append({"text": t, "frames": int(len(f)), **{k: str(v) for k, v in paths.items()}})
+    write_json(Path(out_dir) / "generated.json", out)
+    return out
+
+
+def embed_texts(cfg, texts: list[str]) -> np.ndarray:
+    """Embeddings of ``texts``: from the embedding store when present, else the text encoder."""
+    from party.text.encoders import build_text_encoder
+    from party.text.store import EmbeddingStore
+
+    store = EmbeddingStore.open(cfg.text.embeddings_dir)
+    have = [t in store for t in texts]
+    vecs = np.zeros((len(texts), store.dim), dtype=np.float32)
+    if any(have):
+        vecs[np.array(have)] = store.get([t for t, h in zip(texts, have) if h])
+    if not all(have):
+        enc = build_text_encoder(cfg.text)
+        if enc.id != store.encoder_id:
+            raise ValueError(f"text encoder {enc.id} differs from the store's {store.encoder_id} "
+                             f"({store.path}); rerun `party embed_texts`")
+        miss = [t for t, h in zip(texts, have) if not h]
+        vecs[~np.array(have)] = enc.encode(miss).numpy()
+    return vecs

@@ -1,0 +1,125 @@
+"""Transformer pieces, nanoGPT style: pre-LN blocks, GELU MLP, learned positions, KV-cached decoding.
+
+``Transformer`` runs either a full sequence (causal, or under a given boolean mask, True = may
+attend) or an incremental chunk continuing a ``KVCache`` (positions ``start..start+t-1``).
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from party.generator.kv_cache import KVCache
+
+
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None,
+              dropout_p: float, is_causal: bool = False, need_weights: bool = False
+              ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Scaled dot-product attention over (B, heads, L, head_dim); boolean ``mask`` True = attend.
+
+    ``need_weights`` computes the softmax explicitly (for attention figures) and returns it."""
+    if not need_weights:
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout_p,
+                                              is_causal=is_causal), None
+    s = q @ k.transpose(-2, -1) / q.shape[-1] ** 0.5
+    if is_causal:
+        mask = torch.ones(q.shape[-2], k.shape[-2], dtype=torch.bool, device=q.device).tril()
+    if mask is not None:
+        s = s.masked_fill(~mask, float("-inf"))
+    w = torch.softmax(s, dim=-1)
+    return F.dropout(w, dropout_p) @ v, w
+
+
+def split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
+    B, L, C = x.shape
+    return x.view(B, L, heads, C // heads).transpose(1, 2)
+
+
+def merge_heads(x: torch.Tensor) -> torch.Tensor:
+    B, H, L, D = x.shape
+    return x.transpose(1, 2).reshape(B, L, H * D)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention, ``heads`` x ``head_dim`` projected from and back to ``dim``."""
+
+    def __init__(self, dim: int, heads: int, head_dim: int, dropout: float):
+        super().__init__()
+        self.heads, self.head_dim, self.dropout = heads, head_dim, dropout
+        self.qkv = nn.Linear(dim, 3 * heads * head_dim)
+        self.proj = nn.Linear(heads * head_dim, dim)
+        self.resid_drop = nn.Dropout(dropout)
+
+    def qkv_heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        B, L, _ = x.shape
+        q, k, v = self.qkv(x).view(B, L, 3, self.heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        return q, k, v
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None, is_causal: bool = False,
+                cache: KVCache | None = None, layer: int = 0, need_weights: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        q, k, v = self.qkv_heads(x)
+        if cache is not None:
+            k, v = cache.update(layer, k, v)
+        y, w = attention(q, k, v, mask, self.dropout if self.training else 0.0, is_causal, need_weights)
+        return self.resid_drop(self.proj(merge_heads(y))), w
+
+
+class MLP(nn.Module):
+    def __init__(self, dim: int, hidden: int, dropout: float):
+        super().__init__()
+        self.fc = nn.Linear(dim, hidden)
+        self.proj = nn.Linear(hidden, dim)
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.drop(self.proj(F.gelu(self.fc(x))))
+
+
+class Block(nn.Module):
+    """x + attn(LN(x)), then x + MLP(LN(x))."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: int, dropout: float):
+        super().__init__()
+        self.ln1 = nn.LayerNorm(dim)
+        self.attn = SelfAttention(dim, heads, dim // heads, dropout)
+        self.ln2 = nn.LayerNorm(dim)
+        self.mlp = MLP(dim, mlp_ratio * dim, dropout)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None, is_causal: bool,
+                cache: KVCache | None, layer: int) -> torch.Tensor:
+        x = x + self.attn(self.ln1(x), mask, is_causal, cache, layer)[0]
+        return x + self.mlp(self.ln2(x))
+
+
+class Transformer(nn.Module):
+    """Causal stack over (B, L, dim) input embeddings, learned positions ``0..positions-1``."""
+
+    def __init__(self, dim: int, layers: int, heads: int, mlp_ratio: int, dropout: float, positions: int):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"dim {dim} is not divisible by heads {heads}")
+        self.dim, self.heads, self.positions = dim, heads, positions
+        self.pos = nn.Embedding(positions, dim)
+        self.drop = nn.Dropout(dropout)
+        self.blocks = nn.ModuleList(Block(dim, heads, mlp_ratio, dropout) for _ in range(layers))
+        self.ln_f = nn.LayerNorm(dim)
+
+    def new_cache(self, batch: int, dtype: torch.dtype, device: torch.device) -> KVCache:
+        return KVCache(len(self.blocks), batch, self.heads, self.positions, self.dim // self.heads, dtype, device)
+
+    def forward(self, x: torch.Tensor, start: int = 0, mask: torch.Tensor | None = None,
+                cache: KVCache | None = None) -> torch.Tensor:
+        """Full sequence (``cache`` None; causal unless ``mask``) or the next chunk after
+        ``start`` cached positions (causal within the chunk)."""
+        L = x.shape[1]
+        if start + L > self.positions:
+            raise ValueError(f"{start + L} positions > {self.positions}")
+        x = self.drop(x + self.pos.weight[start:start + L])
+        is_causal = mask is None and cache is None
+        if cache is not None and mask is None and L > 1:
+            q = torch.arange(start, start + L, device=x.device)
+            mask = torch.arange(start + L, device=x.device)[None, :] <= q[:, None]
+        for i, block in enumerate(self.blocks):
+            x = block(x, mask, is_causal, cache, i)
+        return self.ln_f(x)

@@ -1,0 +1,77 @@
+"""The thin LightningModule that trains a ``PartyGenerator`` (SPEC §3).
+
+L = L_hol + L_part + λ_div·L_div + λ_aux·L_aux (the model computes every term under the
+same masks and cycle schedule generation uses); AdamW with the paper's betas, lr until
+``optim.milestone`` iterations then ``optim.lr_after``. Optional T2M-GPT token corruption
+replaces a random fraction of the teacher-forcing *inputs* (never the targets).
+
+Logged per step: each loss term, next-token accuracy per stream and the PTG gate
+selection ratios per part (mean gate weight of each of the K embeddings, paper Fig. 6);
+validation: the same averaged over the validation split (``val/*``).
+"""
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from party.generator.data import corrupt_codes
+
+_SCALARS = ("loss", "hol", "part", "div", "aux")
+
+
+def step_lr_factor(step: int, optim) -> float:
+    """1 until ``milestone`` iterations, then ``lr_after / lr``."""
+    return 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
+
+
+class GeneratorLit(L.LightningModule):
+    def __init__(self, model, optim_cfg, corruption_cfg, codebook_sizes: dict[str, int], seed: int):
+        super().__init__()
+        self.model = model
+        self.optim_cfg = dict(optim_cfg)
+        self.corruption = dict(corruption_cfg)
+        self.codebook_sizes = dict(codebook_sizes)
+        self._gen = torch.Generator().manual_seed(int(seed))
+        self.val_results: dict[str, float] = {}
+        self._val: list[dict[str, float]] = []
+
+    def _inputs(self, batch: dict) -> dict:
+        if not self.corruption["enabled"]:
+            return batch
+        noisy = {s: corrupt_codes(c, batch["lengths"][s], self.codebook_sizes[s], float(self.corruption["prob"]),
+                                  self._gen) for s, c in batch["codes"].items()}
+        return {**batch, "input_codes": noisy}
+
+    def _log_out(self, out: dict, prefix: str, batch_size: int) -> dict[str, float]:
+        vals = {k: out[k].detach() for k in (*_SCALARS, *[k for k in out if k.startswith("acc_")]) if k in out}
+        for part, g in (out.get("gates") or {}).items():
+            for k, v in enumerate(g.float().mean(0)):
+                vals[f"gate_{part}_{k}"] = v
+        self.log_dict({f"{prefix}{k}": float(v) for k, v in vals.items()}, batch_size=batch_size,
+                      prog_bar=False)
+        return {k: float(v) for k, v in vals.items()}
+
+    def training_step(self, batch, _):
+        out = self.model.losses(self._inputs(batch))
+        self._log_out(out, "train/", len(batch["caption"]))
+        return out["loss"]
+
+    def validation_step(self, batch, _):
+        out = self.model.losses(batch)
+        self._val.append({**self._log_out(out, "val_step/", len(batch["caption"])), "_n": len(batch["caption"])})
+
+    def on_validation_epoch_end(self):
+        if not self._val:
+            return
+        n = sum(v["_n"] for v in self._val)
+        keys = [k for k in self._val[0] if k != "_n"]
+        self.val_results = {f"val/{k}": sum(v[k] * v["_n"] for v in self._val) / n for k in keys}
+        self._val = []
+        self.log_dict(self.val_results, sync_dist=False)
+
+    def configure_optimizers(self):
+        o = self.optim_cfg
+        opt = torch.optim.AdamW(self.parameters(), lr=o["lr"], betas=tuple(o["betas"]),
+                                weight_decay=o["weight_decay"])
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: step_lr_factor(s, o))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
