@@ -69,7 +69,7 @@ def test_dvc_repro_runs_every_stage(pipeline):
     metrics = json.loads((work / "data/eval/metrics.json").read_text())
     assert metrics, "evaluate wrote no metrics"
     for m in methods:                     # every generator scored beside ground truth
-        assert (work / f"data/generators/{m}/model.pt").exists()
+        assert (work / f"data/generators/{m}/metrics.json").exists()
         assert m in metrics["results"] and "holistic" in metrics["results"][m], m
     tables = (work / "data/eval/tables.md").read_text()
     assert all(f"| {m} |" in tables for m in methods)
