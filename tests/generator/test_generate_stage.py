@@ -1,0 +1,39 @@
+"""`party generate` for people: reading texts and lengths, and its clear errors."""
+from types import SimpleNamespace
+
+import pytest
+
+from party.stages.generate import read_texts, resolve_run
+
+
+def _gc(**kw):
+    return SimpleNamespace(**{"texts": None, "texts_file": None, "frames": None, **kw})
+
+
+def test_texts_file_with_optional_lengths(tmp_path):
+    f = tmp_path / "prompts.txt"
+    f.write_text("a person waves | 120\n\na person kicks\n")
+    assert read_texts(_gc(texts_file=str(f))) == (["a person waves", "a person kicks"], [120, None])
+    f.write_text("a person waves\na person kicks\n")
+    assert read_texts(_gc(texts_file=str(f))) == (["a person waves", "a person kicks"], None)
+
+
+def test_bad_texts_input_names_the_problem(tmp_path):
+    f = tmp_path / "prompts.txt"
+    f.write_text("a person waves | soon\n")
+    with pytest.raises(ValueError, match=r"prompts.txt:1: length 'soon'"):
+        read_texts(_gc(texts_file=str(f)))
+    f.write_text("\n\n")
+    with pytest.raises(ValueError, match="no texts"):
+        read_texts(_gc(texts_file=str(f)))
+    with pytest.raises(FileNotFoundError, match="texts_file not found"):
+        read_texts(_gc(texts_file=str(tmp_path / "missing.txt")))
+    with pytest.raises(ValueError, match="2 lengths for 1 texts"):
+        read_texts(_gc(texts=["a person waves"], frames=[60, 80]))
+    assert read_texts(_gc(texts=["a", "b"], frames=[60, 80])) == (["a", "b"], [60, 80])
+
+
+def test_unknown_run_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such folder"):
+        resolve_run(None, str(tmp_path / "nope"), tmp_path)
+    assert resolve_run(None, None, tmp_path) == tmp_path
