@@ -48,6 +48,11 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf",
     return cfg
 
 
+def plain(x) -> Any:
+    """A (resolved) plain container of an OmegaConf node; anything else as it is."""
+    return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else x
+
+
 def to_params(cfg: DictConfig) -> dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)
 

@@ -64,12 +64,18 @@ def check_overrides(overrides: Iterable[str], stage: str, config_dir: str | Path
     keys = [k for k in keys if not k.startswith("hydra.")]
     if not keys:
         return
+    conf = Path(config_dir)
+    # cheap gate (no composition) when no override touches a key any conf/ file interpolates
+    sources = {m for f in conf.rglob("*.yaml") for m in _REF.findall(f.read_text())} if conf.is_dir() else set()
+    if not any(src == k or src.startswith(k + ".") for k in keys for src in sources):
+        return
     tree = unresolved_conf(config_dir)
     if tree is None:
         return
     given = set(keys)
+    derived_of = derived_keys(tree)
     for k in keys:
-        for src, derived in derived_keys(tree).items():
+        for src, derived in derived_of.items():
             if src == k or src.startswith(k + "."):
                 missing = sorted(d for d in derived if d not in given)
                 if missing:

@@ -31,6 +31,7 @@ import traceback
 from typing import Any, Callable, Mapping
 
 from party import tracking
+from party.schema import validate
 
 Body = Callable[[Any, Any], Any]
 
@@ -49,14 +50,6 @@ def _value(x, cfg):
     return x(cfg) if callable(x) else x
 
 
-def _validated(cfg):
-    try:
-        from party.schema import validate
-    except ImportError:  # pragma: no cover - schema not installed
-        return cfg
-    return validate(cfg, "params.yaml")
-
-
 def stage(name: str, run_name: str | Callable | None = None,
           tags: Mapping[str, Any] | Callable | None = None) -> Callable[[Body], Callable]:
     """Wrap ``body(cfg, run_) -> dict`` into the stage's ``run(cfg) -> dict``."""
@@ -64,7 +57,7 @@ def stage(name: str, run_name: str | Callable | None = None,
     def deco(body: Body) -> Callable:
         @functools.wraps(body)
         def run(cfg):
-            cfg = _validated(cfg)
+            cfg = validate(cfg, "params.yaml")
             seed_all(int(cfg.seed))
             rname = _value(run_name, cfg) or name
             t0 = time.time()

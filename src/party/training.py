@@ -67,13 +67,10 @@ def resolve_device(name: str | None) -> torch.device:
 
 def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
     """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning."""
-    from omegaconf import OmegaConf
-
-    def plain(x):
-        return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else dict(x or {})
+    from party.config import plain
 
     t = plain(cfg.trainer)
-    for k, v in plain(section).items():
+    for k, v in dict(plain(section) or {}).items():
         if k in TRAINER_KEYS:
             t[k] = v
     return {k: t[k] for k in TRAINER_KEYS}

@@ -3,25 +3,14 @@ sees what generation sees, sampling filters."""
 import pytest
 import torch
 
-from party.generator import GeneratorSpec, PartyGenerator
 from party.generator import schedule as S
 from party.generator.sampling import choose, filter_logits
 
-VOCAB = {"holistic": 11, "arms": 7, "legs": 6}
-WINDOWS = {"holistic": 8, "arms": 12, "legs": 12}
-D_TEXT = 16
-MODEL = dict(dim=32, part_layers=2, holistic_layers=2, heads=4, mlp_ratio=2, dropout=0.1, max_tokens=20,
-             ptg_k=3, ptg_hidden=24, pg_window=3, pg_hidden=16, hpf_heads=2, hpf_head_dim=8)
-LOSS = dict(lambda_div=0.1, tau=0.05, lambda_aux=0.1)
-METHODS = {"party": dict(kind="party", pg=True, ptg=True, hpf=True, aux=True),
-           "holistic": dict(kind="holistic", pg=False, ptg=False, hpf=False, aux=False),
-           "partwise": dict(kind="partwise", pg=False, ptg=True, hpf=False, aux=True)}
+from .tiny_spec import D_TEXT, MODEL, VOCAB, WINDOWS, build
 
 
 def make(kind, seed=0, **switches):
-    torch.manual_seed(seed)
-    spec = GeneratorSpec.from_config(MODEL, LOSS, {**METHODS[kind], **switches}, VOCAB, WINDOWS, D_TEXT)
-    return PartyGenerator(spec)
+    return build(kind, seed, {"dropout": 0.1}, **switches)       # dropout on: generation must switch it off
 
 
 def targets(B, seed):

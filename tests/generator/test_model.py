@@ -7,29 +7,19 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from party.generator import GeneratorSpec, KVCache, PartyGenerator
+from party.generator import GeneratorSpec, KVCache
 from party.generator import schedule as S
 from party.generator.hpf import HolisticPartFusion
 from party.generator.layers import Transformer
 from party.generator.ptg import PartTextGrounding, diversity_loss
 
+from .tiny_spec import D_TEXT, LOSS, METHODS, MODEL, VOCAB, WINDOWS, build
+
 REPO = Path(__file__).resolve().parents[2]
-VOCAB = {"holistic": 11, "arms": 7, "legs": 6}
-WINDOWS = {"holistic": 8, "arms": 12, "legs": 12}
-D_TEXT = 16
-MODEL = dict(dim=32, part_layers=2, holistic_layers=2, heads=4, mlp_ratio=2, dropout=0.0, max_tokens=20,
-             ptg_k=3, ptg_hidden=24, pg_window=3, pg_hidden=16, hpf_heads=2, hpf_head_dim=8)
-LOSS = dict(lambda_div=0.1, tau=0.05, lambda_aux=0.1)
-METHODS = {"party": dict(kind="party", pg=True, ptg=True, hpf=True, aux=True),
-           "holistic": dict(kind="holistic", pg=False, ptg=False, hpf=False, aux=False),
-           "partwise": dict(kind="partwise", pg=False, ptg=True, hpf=False, aux=True)}
 
 
 def make(kind="party", seed=0, model=None, **switches):
-    torch.manual_seed(seed)
-    spec = GeneratorSpec.from_config({**MODEL, **(model or {})}, LOSS, {**METHODS[kind], **switches}, VOCAB,
-                                     WINDOWS, D_TEXT)
-    return PartyGenerator(spec).eval()
+    return build(kind, seed, model, **switches).eval()
 
 
 def make_batch(B=4, L_h=12, L_p=9, seed=1):

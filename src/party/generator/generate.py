@@ -79,19 +79,20 @@ def generate_batches(model, text_emb: np.ndarray, lengths: Mapping[str, torch.Te
     return out
 
 
-def measure_ait(model, text_emb: np.ndarray, lengths, gcfg, decode, n: int, warmup: int) -> float:
-    """Milliseconds per sample at batch 1 (generation + decoding), averaged over ``n`` samples."""
+def generation_ait(model, text_emb: np.ndarray, lengths, gcfg, decode, n: int, warmup: int) -> float:
+    """Milliseconds per sample at batch 1 (generation + decoding), averaged over ``n`` samples
+    with the evaluation's AIT timer (``party.evaluation.efficiency.measure_ait``)."""
+    from party.evaluation.efficiency import measure_ait
+
     gen = torch.Generator().manual_seed(gcfg.seed)
-    times = []
-    for i in range(warmup + n):
-        c = torch.as_tensor(np.asarray(text_emb[i % len(text_emb)][None]), dtype=torch.float32)
-        lb = None if lengths is None else {k: v[i % len(text_emb)][None] for k, v in lengths.items()}
-        t0 = time.perf_counter()
+
+    def one(i: int) -> None:
+        c = torch.as_tensor(np.asarray(text_emb[i][None]), dtype=torch.float32)
+        lb = None if lengths is None else {k: v[i][None] for k, v in lengths.items()}
         codes = model.generate(c, lb, generator=gen, **_sampling_kw(gcfg))
         decode({k: v[0] for k, v in codes.items()})
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.mean(times))
+
+    return measure_ait(one, range(len(text_emb)), n, warmup)["ait_ms"]
 
 
 def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
@@ -120,7 +121,7 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     feats = generate_batches(model, emb, lengths, gc, decode, progress)
     seconds = time.time() - t0
     e = cfg.eval.efficiency
-    ait = measure_ait(model, emb, lengths, gc, decode, min(e.ait_samples, len(rows)), e.ait_warmup)
+    ait = generation_ait(model, emb, lengths, gc, decode, min(e.ait_samples, len(rows)), e.ait_warmup)
     counts = model.param_counts()
     method_cfg = g.methods[method]
     index = {"name": method, "format": "features", "normalized": False, "method": method,

@@ -42,23 +42,23 @@ class GeneratorLit(L.LightningModule):
                                   self._gen) for s, c in batch["codes"].items()}
         return {**batch, "input_codes": noisy}
 
-    def _log_out(self, out: dict, prefix: str, batch_size: int) -> dict[str, float]:
-        vals = {k: out[k].detach() for k in (*_SCALARS, *[k for k in out if k.startswith("acc_")]) if k in out}
+    @staticmethod
+    def _scalars(out: dict) -> dict[str, float]:
+        """The loss terms, accuracies and mean gate weight per part and embedding."""
+        vals = {k: float(out[k].detach()) for k in (*_SCALARS, *[k for k in out if k.startswith("acc_")])
+                if k in out}
         for part, g in (out.get("gates") or {}).items():
             for k, v in enumerate(g.float().mean(0)):
-                vals[f"gate_{part}_{k}"] = v
-        self.log_dict({f"{prefix}{k}": float(v) for k, v in vals.items()}, batch_size=batch_size,
-                      prog_bar=False)
-        return {k: float(v) for k, v in vals.items()}
+                vals[f"gate_{part}_{k}"] = float(v)
+        return vals
 
     def training_step(self, batch, _):
         out = self.model.losses(self._inputs(batch))
-        self._log_out(out, "train/", len(batch["caption"]))
+        self.log_dict({f"train/{k}": v for k, v in self._scalars(out).items()}, batch_size=len(batch["caption"]))
         return out["loss"]
 
     def validation_step(self, batch, _):
-        out = self.model.losses(batch)
-        self._val.append({**self._log_out(out, "val_step/", len(batch["caption"])), "_n": len(batch["caption"])})
+        self._val.append({**self._scalars(self.model.losses(batch)), "_n": len(batch["caption"])})
 
     def on_validation_epoch_end(self):
         if not self._val:

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
+from party import tracking
+from party.config import plain
 from party.generator.data import build_generator_data, collate_generator
 from party.generator.lit import GeneratorLit
 from party.generator.model import GeneratorSpec, PartyGenerator
@@ -41,15 +42,11 @@ _RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "resume", "num_worker
                    "render_samples", "prompts"}
 
 
-def _plain(x):
-    return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else x
-
-
 def build_model(cfg, method: str, ds) -> PartyGenerator:
     g = cfg.generator
     if method not in g.methods:
         raise KeyError(f"generator.method={method!r} is not in generator.methods ({sorted(g.methods)})")
-    spec = GeneratorSpec.from_config(_plain(g.model), _plain(g.loss), _plain(g.methods[method]),
+    spec = GeneratorSpec.from_config(plain(g.model), plain(g.loss), plain(g.methods[method]),
                                      vocab=ds.codebook_sizes, windows=ds.windows, text_dim=ds.dim)
     return PartyGenerator(spec)
 
@@ -167,12 +164,13 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
     L.seed_everything(seed, workers=True, verbose=False)
     train_ds, val_ds = build_generator_data(cfg, "train"), build_generator_data(cfg, t.val_split)
     model = build_model(cfg, method, train_ds)
-    untrained = _evaluate(build_model(cfg, method, train_ds), _loader(val_ds, t.batch_size, False, 0, seed))
+    val_loader = _loader(val_ds, t.batch_size, False, 0, seed)
+    untrained = _evaluate(model, val_loader)              # the trivial baseline: these weights before training
     torch.manual_seed(seed)
     lit = GeneratorLit(model, g.optim, g.corruption, train_ds.codebook_sizes, seed)
-    train_cfg = {k: v for k, v in _plain(t).items() if k not in _RESUME_IGNORES}
-    key = config_key({"model": _plain(g.model), "loss": _plain(g.loss), "optim": _plain(g.optim),
-                      "corruption": _plain(g.corruption), "train": train_cfg, "method": _plain(g.methods[method]),
+    train_cfg = {k: v for k, v in plain(t).items() if k not in _RESUME_IGNORES}
+    key = config_key({"model": plain(g.model), "loss": plain(g.loss), "optim": plain(g.optim),
+                      "corruption": plain(g.corruption), "train": train_cfg, "method": plain(g.methods[method]),
                       "seed": seed}, _identity(cfg))
     rdir = resume_dir(g.resume_dir, method, key)
     ckpt = rdir / "last.ckpt"
@@ -182,16 +180,16 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                   "party.resumed": str(resume is not None).lower()})
     run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds)})
     t0 = time.time()
-    trainer = build_trainer(cfg, max_steps=t.max_steps, logger=_logger(cfg, run),
+    trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
                             callbacks=[AtomicCheckpoint(ckpt, t.ckpt_every), *(callbacks or [])],
                             val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
                             default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None)
     if resume:
         log.info("resuming generator %s from %s", method, resume)
     trainer.fit(lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed),
-                _loader(val_ds, t.batch_size, False, 0, seed), ckpt_path=str(resume) if resume else None,
+                val_loader, ckpt_path=str(resume) if resume else None,
                 weights_only=True)
-    final = _evaluate(model, _loader(val_ds, t.batch_size, False, 0, seed))
+    final = _evaluate(model, val_loader)
     metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
                "final": final, "untrained": untrained, "train_seconds_this_run": round(time.time() - t0, 1)}
     run.log_metrics({f"final/{k.split('/', 1)[1]}": v for k, v in final.items()}, step=int(trainer.global_step))
@@ -203,7 +201,7 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
         with atomic_dir(out_dir) as tmp:
             shutil.copy2(ckpt, tmp / "last.ckpt")
             save_generator(model, tmp / "model.pt", meta)
-            write_json(tmp / "config.json", {"method": method, **_plain(g), "meta": meta})
+            write_json(tmp / "config.json", {"method": method, **plain(g), "meta": meta})
             write_json(tmp / "metrics.json", metrics)
         out_dir = Path(out_dir)
         run.log_file(out_dir / "model.pt", "generator")
@@ -212,11 +210,6 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
             run.log_file(out_dir / "last.ckpt", "generator")
     _report(method, metrics)
     return metrics
-
-
-def _logger(cfg, run):
-    from party import tracking
-    return tracking.lightning_logger(cfg, run)
 
 
 def _report(method: str, m: dict) -> None:

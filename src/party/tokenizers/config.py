@@ -8,11 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from omegaconf import DictConfig, OmegaConf
-
-
-def _plain(x) -> Any:
-    return OmegaConf.to_container(x, resolve=True) if isinstance(x, DictConfig) else x
+from party.config import plain
 
 
 def _merge(base: dict, over: Mapping) -> dict:
@@ -24,7 +20,7 @@ def _merge(base: dict, over: Mapping) -> dict:
 
 def stream_config(vq_cfg, stream: str) -> dict:
     """``{"model": ..., "train": ..., "loss": ..., "optim": ...}`` for one stream (plain dicts)."""
-    vq = _plain(vq_cfg)
+    vq = plain(vq_cfg)
     toks = vq.get("tokenizers", {})
     if stream not in toks:
         raise KeyError(f"vqvae.tokenizers has no entry {stream!r} (have {sorted(toks)})")
