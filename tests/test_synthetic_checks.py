@@ -63,3 +63,24 @@ def test_probe_clips_pick_whole_single_clips_with_one_named_side(tmp_path):
     assert got == [("a", "left"), ("Ma", "right")]
     with pytest.raises(FileNotFoundError, match="specs.jsonl"):
         load_specs(tmp_path / "nowhere")
+
+
+def test_held_out_clips_need_the_pair_at_the_same_time_inside_the_clip(tmp_path):
+    from party.data.synthetic.checks import held_out_clips
+
+    def spec(name, arms, legs, arms_spans, legs_spans):
+        return {"name": name, "kind": "single", "arms": [{"name": a} for a in arms],
+                "legs": [{"name": g} for g in legs], "arms_spans": arms_spans, "legs_spans": legs_spans}
+    specs = [spec("a", ["wave"], ["run"], [[0, 60]], [[0, 60]]),                  # held out
+             spec("b", ["wave", "clap"], ["walk"], [[0, 30], [30, 60]], [[0, 60]]),
+             spec("c", ["wave"], ["walk", "run"], [[0, 60]], [[0, 30], [30, 60]]),  # wave+run from frame 30
+             spec("d", ["clap"], ["run"], [[0, 60]], [[0, 60]])]
+    (tmp_path / "specs.jsonl").write_text("".join(json.dumps(s) + "\n" for s in specs))
+    clip = lambda i, m, s, e: {"id": i, "motion": m, "start": s, "end": e, "split": "test", "captions": []}  # noqa: E731
+    clips = [clip("a", "a", 0, 60), clip("b", "b", 0, 60), clip("c", "c", 0, 60), clip("c#0-30", "c", 0, 30),
+             clip("c#30-60", "c", 30, 60), clip("d", "d", 0, 60)]
+    index = Index("synthetic", str(tmp_path), 20.0, 263, 22, "t2m", clips)
+    assert held_out_clips(index, load_specs(tmp_path), "test", [["wave", "run"]]) == {"a", "c", "c#30-60"}
+    bad = Index("synthetic", str(tmp_path), 20.0, 263, 22, "t2m", [clip("x", "nowhere", 0, 10)])
+    with pytest.raises(KeyError, match="specs.jsonl"):
+        held_out_clips(bad, load_specs(tmp_path), "test", [["wave", "run"]])

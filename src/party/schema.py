@@ -575,6 +575,7 @@ class Eval:
     coherence: Coherence = _group(Coherence)
     efficiency: Efficiency = _group(Efficiency)
     calibrate: Calibrate = _group(Calibrate)
+    held_out_subset: bool = MISSING
 
 
 # --------------------------------------------------------------------------- generator
@@ -603,6 +604,7 @@ class GenModel:
     pg_hidden: int = MISSING
     hpf_heads: int = MISSING
     hpf_head_dim: int = MISSING
+    text_norm: str = MISSING
 
 
 @dataclass
@@ -642,6 +644,7 @@ class GenTrain:
     log_checkpoint: bool = MISSING
     render_samples: int = MISSING
     prompts: List[str] = MISSING
+    untrained_loss_ratio: float = MISSING
 
 
 @dataclass

@@ -58,3 +58,16 @@ def test_large_batch_r_precision_only_when_measured():
     measured = {**RESULTS, "full": {"holistic": {**METRICS, "top1_b256": _st(0.1)}}}
     out = table1(measured, "holistic", 256)
     assert "### R-Precision with B = 256 candidates" in out and "| full | 0.100±.010 | - | - |" in out
+
+
+def test_subset_table_lists_every_stream_of_the_subset():
+    from party.evaluation.report import subset_table
+    stat = lambda v: {"mean": v, "ci95": 0.01, "n": 3}  # noqa: E731
+    res = {"ground_truth": {"holistic@held_out": {"top1": stat(0.5), "fid": stat(0.0)},
+                            "arms@held_out": {"top1": stat(0.4)}},
+           "party": {"holistic": {"top1": stat(0.3)}, "arms@held_out": {"top1": stat(0.2)}}}
+    t = subset_table(res, "held_out", ["holistic", "arms", "legs"], "3 clips")
+    assert t.startswith("### Subset `held_out`: 3 clips")
+    rows = [line for line in t.splitlines() if line.startswith("| ") and "Method" not in line]
+    assert len(rows) == 3 and rows[-1].startswith("| party | Arms | 0.200")
+    assert subset_table(res, "other", ["holistic"], "x") == ""

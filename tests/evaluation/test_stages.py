@@ -218,3 +218,33 @@ def test_ablation_table_has_reconstruction_fid(trained, tmp_path):
     assert "recon_fid" in (tmp_path / "abl/mini/table.md").read_text()
     cfg.vqvae.ablation.fid = False
     assert all("recon_fid" not in r for r in vq_ablation.run(cfg))
+
+
+def test_subset_metrics_score_only_the_subset_clips(trained, tmp_path):
+    """A run that copies the ground truth on a subset of clips and repeats one motion elsewhere:
+    poor on the whole split, ground-truth-like on the subset (so the subset is really filtered)."""
+    from omegaconf import OmegaConf
+
+    from party.evaluation.loading import load_evaluators
+    from party.evaluation.protocol import run_protocol
+    from party.evaluation.sources import GeneratedSource
+
+    tmp, _, cfg, _ = trained
+    ctx = load_context(cfg)
+    clips = ctx.index.clips("test")
+    full = lambda c: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
+    subset = {c["id"] for c in clips[::2]}
+    write_generated(tmp_path / "half", clips, lambda c, r: full(c) if c["id"] in subset else full(clips[1]))
+    evs = load_evaluators(cfg, ctx, torch.device("cpu"))
+    protocol = {**OmegaConf.to_container(cfg.eval, resolve=True), "replications": 2}
+    protocol["coherence"] = {**protocol["coherence"], "enabled": False}
+    gt = GroundTruthSource(ctx, "test", 196, 4)
+    res = run_protocol(protocol, gt, {s: Embedder(e) for s, e in evs.items()}, {},
+                       [GeneratedSource(tmp_path / "half", ctx)], None, None, ctx.n_joints, ctx.layout,
+                       progress=False, subsets={"even": subset})
+    whole, sub = res["half"]["holistic"], res["half"]["holistic@even"]
+    gt_sub = res["ground_truth"]["holistic@even"]
+    assert sub["fid"]["mean"] < 0.5 * whole["fid"]["mean"]
+    assert abs(sub["mm_dist"]["mean"] - gt_sub["mm_dist"]["mean"]) < 0.2 * gt_sub["mm_dist"]["mean"]
+    assert sub["mm_dist"]["mean"] < whole["mm_dist"]["mean"]
+    assert set(res["half"]) >= {"holistic", "holistic@even", "arms", "arms@even"}

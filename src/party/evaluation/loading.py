@@ -139,3 +139,19 @@ def reconstruction_fid_scorer(cfg, stream: str):
         return {"recon_fid": round(float(fid["mean"]), 4), "recon_fid_ci95": round(float(fid["ci95"]), 4)}
 
     return score
+
+
+def held_out_subsets(cfg, ctx) -> dict[str, tuple[set[str], str]]:
+    """{"held_out": (clip ids, description)} for ``eval.held_out_subset`` on the synthetic dataset
+    (the test clips of ``dataset.synthetic.held_out``); {} otherwise."""
+    if not cfg.eval.held_out_subset or cfg.dataset.kind != "synthetic":
+        return {}
+    from party.data.synthetic.checks import held_out_clips, load_specs
+    held = [list(p) for p in cfg.dataset.synthetic.held_out]
+    ids = held_out_clips(ctx.index, load_specs(ctx.index.root), cfg.eval.split, held)
+    if not ids:
+        log.warning("eval.held_out_subset: no %s clip holds a held-out combination %s", cfg.eval.split, held)
+        return {}
+    pairs = ", ".join(f"{a}+{g}" for a, g in held)
+    return {"held_out": (ids, f"{len(ids)} {cfg.eval.split} clips of the arm x leg combinations held out of "
+                              f"training ({pairs}): compositional generalisation")}

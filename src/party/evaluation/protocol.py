@@ -128,8 +128,12 @@ class CoherenceScorer:
 def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizers: dict,
                  generated: list[GeneratedSource],
                  parts: Parts | None, sc_ref: SCReference | None, n_joints: int, layout=None,
-                 progress: bool = True) -> dict[str, dict[str, dict]]:
-    """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}}}"""
+                 progress: bool = True, subsets: Mapping[str, set[str]] | None = None) -> dict[str, dict[str, dict]]:
+    """-> {source: {stream|'coherence'|'reconstruction'|'<stream>@<subset>': {metric: {mean, ci95, n}}}}
+
+    ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
+    (the same draws and embeddings; R-Precision pools within the subset, FID against the
+    reference draw of the same clips), under ``<stream>@<name>`` of generated runs and ground truth."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     coh = cfg["coherence"]
     scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
@@ -149,11 +153,22 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
         for g in generated:
             sets[g.name] = (g.draw(rng), list(embedders), True)
         for stream, emb in embedders.items():
-            ref = M.FrechetReference.of(emb.motions(gt_ref))
+            m_ref = emb.motions(gt_ref)
+            ref = M.FrechetReference.of(m_ref)
+            sub_refs = {}
+            for k, ids in (subsets or {}).items():
+                r = _rows_of(gt_ref, ids)
+                if len(r) >= 2:                  # fewer clips: nothing to score on
+                    sub_refs[k] = (ids, M.FrechetReference.of(m_ref[r]))
             for name, (ms, streams, _) in sets.items():
                 if stream in streams:
-                    m = emb.motions(ms)
-                    rows[name][stream].append(retrieval_metrics(emb.texts(ms), m, ref, cfg, rng))
+                    m, t = emb.motions(ms), emb.texts(ms)
+                    rows[name][stream].append(retrieval_metrics(t, m, ref, cfg, rng))
+                    if name.startswith("recon_"):
+                        continue
+                    for k, (ids, sref) in sub_refs.items():
+                        r = _rows_of(ms, ids)
+                        rows[name][f"{stream}@{k}"].append(retrieval_metrics(t[r], m[r], sref, cfg, rng))
         if scorer is not None:
             for name, (ms, _, full_body) in sets.items():
                 if full_body:
@@ -167,6 +182,10 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             if mm is not None:
                 out[g.name].setdefault("holistic", {})["multimodality"] = mm
     return out
+
+
+def _rows_of(ms: MotionSet, ids: set[str]) -> torch.Tensor:
+    return torch.tensor([i for i, k in enumerate(ms.keys) if k in ids], dtype=torch.long)
 
 
 def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int, cfg: Mapping) -> dict[str, float]:

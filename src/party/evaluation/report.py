@@ -115,15 +115,31 @@ def efficiency_table(efficiency: Mapping) -> str:
         ["Model", "# Params", "AIT"], rows)
 
 
+def subset_table(results: Mapping, subset: str, streams: Sequence[str], description: str) -> str:
+    """Retrieval metrics on one subset of the clips (``<stream>@<subset>`` results), every stream."""
+    rows = []
+    for src, d in results.items():
+        for s in streams:
+            p = d.get(f"{s}@{subset}")
+            if p:
+                rows.append([label(src), s.capitalize()] + [fmt(p.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
+    if not rows:
+        return ""
+    return f"### Subset `{subset}`: {description}\n\n" + _table(
+        ["Method", "Evaluator", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
+
+
 def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str = "", large: int = 256, *,
-           whole_stream: str, part_streams: Sequence[str]) -> str:
+           whole_stream: str, part_streams: Sequence[str], subsets: Mapping[str, str] | None = None) -> str:
     """All tables. ``whole_stream`` / ``part_streams``: ``PartLayout.whole_stream`` /
-    ``.part_streams`` of ``dataset.parts``."""
+    ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description} of ``run_protocol``'s subsets."""
     parts = [header, table1(results, whole_stream, large), table2(results, part_streams), table3(results)]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))
     if switches:
         parts.append(table5(results, switches, whole_stream))
+    for name, description in (subsets or {}).items():
+        parts.append(subset_table(results, name, [whole_stream, *part_streams], description))
     parts.append(efficiency_table(efficiency))
     return "\n\n".join(p for p in parts if p) + "\n"
 

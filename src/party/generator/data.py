@@ -147,6 +147,11 @@ class GeneratorDataset(Dataset):
                                       for c in self.captions], dtype=bool) for p in self.parts}
 
     @property
+    def caption_embeddings(self) -> torch.Tensor:
+        """(distinct captions, D) embeddings of this split's captions."""
+        return self._cap_emb
+
+    @property
     def dim(self) -> int:
         return int(self._cap_emb.shape[1])
 

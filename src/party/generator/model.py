@@ -44,6 +44,7 @@ from party.generator.ptg import PartTextGrounding, diversity_loss
 from party.generator.sampling import choose
 
 KINDS = ("party", "holistic", "partwise")
+TEXT_NORMS = ("none", "standardize")
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,7 @@ class GeneratorSpec:
     pg_hidden: int
     hpf_heads: int
     hpf_head_dim: int
+    text_norm: str
     lambda_div: float
     tau: float
     lambda_aux: float
@@ -74,7 +76,7 @@ class GeneratorSpec:
     text_dim: int
 
     _MODEL = ("dim", "part_layers", "holistic_layers", "heads", "mlp_ratio", "dropout", "max_tokens", "ptg_k",
-              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim")
+              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim", "text_norm")
     _LOSS = ("lambda_div", "tau", "lambda_aux")
     _METHOD = ("kind", "pg", "ptg", "hpf", "aux")
 
@@ -90,6 +92,8 @@ class GeneratorSpec:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"method kind must be one of {KINDS}, got {self.kind!r}")
+        if self.text_norm not in TEXT_NORMS:
+            raise ValueError(f"generator.model.text_norm must be one of {TEXT_NORMS}, got {self.text_norm!r}")
         if list(self.vocab) != list(self.windows) or len(self.vocab) < 2:
             raise ValueError(f"vocab {list(self.vocab)} and windows {list(self.windows)} must name the same "
                              "streams, holistic first, then at least one part")
@@ -175,7 +179,28 @@ class PartyGenerator(nn.Module):
                                 nn.Linear(spec.pg_hidden, spec.dim)) if spec.pg else None
         self.hpf = HolisticPartFusion(spec.dim, spec.hpf_heads, spec.hpf_head_dim, spec.dropout, self.parts,
                                       positions) if spec.hpf else None
+        # text_norm = standardize: the training captions' per-dimension mean / std (set_text_stats)
+        self.register_buffer("text_mean", torch.zeros(spec.text_dim))
+        self.register_buffer("text_std", torch.ones(spec.text_dim))
         self.apply(_init)
+
+    def set_text_stats(self, caption_emb: torch.Tensor) -> None:
+        """Per-dimension mean / std of the training captions' embeddings (N, D_text), used by
+        ``text_norm = standardize`` (a no-op for ``none``). Stored with the weights."""
+        if self.spec.text_norm == "none":
+            return
+        e = torch.as_tensor(caption_emb, dtype=torch.float32)
+        if e.ndim != 2 or e.shape[1] != self.spec.text_dim or len(e) < 2:
+            raise ValueError(f"set_text_stats: expected (N >= 2, {self.spec.text_dim}) caption embeddings, "
+                             f"got {tuple(e.shape)}")
+        self.text_mean.copy_(e.mean(0))
+        self.text_std.copy_(e.std(0).clamp_min(1e-6))
+
+    def norm_text(self, e: torch.Tensor) -> torch.Tensor:
+        """A frozen text embedding (caption or part text) as the model sees it (``text_norm``)."""
+        if self.spec.text_norm == "none":
+            return e
+        return (e - self.text_mean) / self.text_std
 
     # ------------------------------------------------------------------ pieces
     def _sched(self) -> tuple[int, int, int]:
@@ -228,7 +253,7 @@ class PartyGenerator(nn.Module):
         return gpt(x + add), maps
 
     def _teacher_forcing(self, batch: Mapping, need_weights: bool = False) -> dict:
-        c = batch["text_emb"]
+        c = self.norm_text(batch["text_emb"])
         inp, tgt, seen = {}, {}, {}
         for s in self.spec.streams:
             g, n = self.gpt[s], batch["lengths"][s].to(c.device)
@@ -250,7 +275,7 @@ class PartyGenerator(nn.Module):
                                for p in self.parts}
             logits[self.hol], maps = self._holistic_logits(c, inp[self.hol], part_tokens, need_weights)
         return {"logits": logits, "targets": tgt, "gates": gates, "c_parts": c_parts, "c_prime": c_prime,
-                "maps": maps}
+                "maps": maps, "c": c}
 
     # ------------------------------------------------------------------ API
     def forward(self, batch: Mapping) -> dict[str, torch.Tensor]:
@@ -261,7 +286,7 @@ class PartyGenerator(nn.Module):
         """L = L_hol + L_part + lambda_div L_div + lambda_aux L_aux, the terms (0 when absent),
         next-token accuracies of the method's streams and the (detached) PTG gate weights."""
         tf = self._teacher_forcing(batch)
-        c = batch["text_emb"]
+        c = tf["c"]
         zero = c.new_zeros(())
         out = {"hol": zero, "part": zero, "div": zero, "aux": zero}
         for s, lg in tf["logits"].items():
@@ -276,7 +301,8 @@ class PartyGenerator(nn.Module):
         if self.ptg is not None:
             out["div"] = diversity_loss(tf["c_prime"], c, self.spec.tau)
             if self.spec.aux:
-                out["aux"] = PartTextGrounding.aux_loss(tf["c_parts"], batch["part_emb"], batch["no_movement"], c)
+                part_emb = {p: self.norm_text(e) for p, e in batch["part_emb"].items()}
+                out["aux"] = PartTextGrounding.aux_loss(tf["c_parts"], part_emb, batch["no_movement"], c)
         out["loss"] = out["hol"] + out["part"] + self.spec.lambda_div * out["div"] + self.spec.lambda_aux * out["aux"]
         out["gates"] = {p: g.detach() for p, g in tf["gates"].items()}
         return out
@@ -324,6 +350,7 @@ class _Generation:
     """One batched generation: part-then-holistic cycles (party), or one kind's streams."""
 
     def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool):
+        c = model.norm_text(c)
         self.m, self.c, self.sampler, self.use_cache = model, c, sampler, use_cache
         spec = model.spec
         self.B, self.M = c.shape[0], spec.max_tokens

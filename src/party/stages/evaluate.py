@@ -19,8 +19,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from party.data.context import load_context
 from party.evaluation.context import log_metrics_flat
-from party.evaluation.loading import (coherence_parts, efficiency, fit_sc_reference, load_evaluators,
-                                      tokenizer_sources)
+from party.evaluation.loading import (coherence_parts, efficiency, fit_sc_reference, held_out_subsets,
+                                      load_evaluators, tokenizer_sources)
 from party.evaluation.protocol import Embedder, run_protocol
 from party.evaluation.report import report
 from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
@@ -56,21 +56,23 @@ def run(cfg: DictConfig, run_) -> dict:
                          f"(set `name` in their index.json)")
     protocol = OmegaConf.to_container(ec, resolve=True)
     embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
+    subsets = held_out_subsets(cfg, ctx)
     results = run_protocol(protocol, gt, embedders, toks, generated, parts, sc_ref, ctx.n_joints, ctx.layout,
-                           progress=cfg.progress)
+                           progress=cfg.progress, subsets={k: ids for k, (ids, _) in subsets.items()})
     eff = efficiency(cfg, evaluators, toks, generated, gt)
     switches = {g.name: g.meta["switches"] for g in generated if "switches" in g.meta}
     summary = {
         "dataset": ctx.index.dataset, "split": ec.split, "n_clips": len(gt.ds),
         "replications": ec.replications, "evaluators": {s: ev.kind for s, ev in evaluators.items()},
         "seconds": round(time.time() - t0, 1), "device": str(device),
+        "subsets": {k: {"clips": len(ids), "description": d} for k, (ids, d) in subsets.items()},
     }
     metrics = {"summary": summary, "results": results, "efficiency": eff}
     header = (f"## Evaluation: {ctx.index.dataset} / {ec.split} ({len(gt.ds)} clips), {ec.replications} "
               f"replications, mean ± 95% CI\n\nEvaluators: "
               + ", ".join(f"{s} ({ev.kind})" for s, ev in evaluators.items()))
     tables = report(results, eff, switches, header, ec.large_batch_size, whole_stream=ctx.layout.whole_stream,
-                    part_streams=ctx.layout.part_streams)
+                    part_streams=ctx.layout.part_streams, subsets={k: d for k, (_, d) in subsets.items()})
     with atomic_dir(ec.out_dir) as tmp:
         write_json(tmp / "metrics.json", metrics)
         write_text(tmp / "tables.md", tables)

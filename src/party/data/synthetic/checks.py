@@ -37,6 +37,24 @@ def load_specs(root: str | Path) -> dict[str, dict]:
     return {s["name"]: s for s in map(json.loads, path.read_text().splitlines()) if s}
 
 
+def held_out_clips(index, specs: dict[str, dict], split: str, held_out) -> set[str]:
+    """Clip ids of ``split`` in which a held-out [arms action, legs action] pair happens at the same
+    time within the clip's frames (timed captions cover part of a motion; mirrors keep their pair)."""
+    held = {tuple(p) for p in held_out}
+    out = set()
+    for clip in index.clips(split):
+        s = specs.get(clip["motion"])
+        if s is None:
+            raise KeyError(f"{index.path}: clip {clip['id']!r} names motion {clip['motion']!r}, which "
+                           "specs.jsonl does not describe; rerun `party prepare`")
+        c0, c1 = int(clip["start"]), int(clip["end"])
+        for a, (a0, a1) in zip(s["arms"], s["arms_spans"]):
+            for g, (g0, g1) in zip(s["legs"], s["legs_spans"]):
+                if (a["name"], g["name"]) in held and min(a1, g1, c1) - max(a0, g0, c0) > 0:
+                    out.add(clip["id"])
+    return out
+
+
 def wave_kept(joints: np.ndarray, side: str, margin: float) -> bool:
     """joints (T, 22, 3), y up: is the ``side`` wrist raised in clearly more frames than the other?"""
     up = {s: float(np.mean(joints[:, WRIST[s], 1] > joints[:, SHOULDER[s], 1])) for s in WRIST}
