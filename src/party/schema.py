@@ -497,6 +497,12 @@ class Multimodality:
 
 
 @dataclass
+class EvalReport:
+    clips: int = MISSING
+    max_frames: int = MISSING
+
+
+@dataclass
 class EvalSources:
     ground_truth: bool = MISSING
     tokenizers: List[str] = MISSING
@@ -576,6 +582,7 @@ class Eval:
     efficiency: Efficiency = _group(Efficiency)
     calibrate: Calibrate = _group(Calibrate)
     held_out_subset: bool = MISSING
+    report: EvalReport = _group(EvalReport)
 
 
 # --------------------------------------------------------------------------- generator

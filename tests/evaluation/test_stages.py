@@ -115,6 +115,9 @@ def test_evaluate_stage_all_sources(trained, monkeypatch):
     assert out["summary"]["n_clips"] < 256 and "B = 256" not in tables      # B = 256 needs >= 256 clips
     assert "| copy | ✓ | ✓ | ✓ |" in tables and "| Real motion | Arms |" in tables
     assert json.loads((tmp / "eval/sc_reference.json").read_text())["part_names"][0] == "left_arm"
+    page = (tmp / "eval/report.html").read_text()
+    assert page.count("data:image/gif;base64,") == cfg.eval.report.clips      # real + copy + noisy + same each
+    assert page.count("data:image/png;base64,") == 1 and page.count("<table>") == tables.count("### ")
 
 
 def test_calibrate_coherence_separates_corruptions(trained):

@@ -5,7 +5,8 @@ dataset, ``<evaluator.out_dir>/<stream>/finest.tar``, optional tokenizer
 checkpoints ``<eval.sources.tokenizers_dir>/<stream>/last.ckpt`` and optional
 generated runs ``<eval.sources.generated_dir>/<run>/index.json``. Writes
 ``<eval.out_dir>/`` atomically: ``metrics.json`` (DVC metrics), ``tables.md``
-(paper Tables 1-5 layout) and ``sc_reference.json`` (SC statistics of the
+(paper Tables 1-5 layout), ``report.html`` (tables, charts, sample animations; ``eval.report``)
+and ``sc_reference.json`` (SC statistics of the
 reference split); logs everything to MLflow.
 """
 
@@ -22,6 +23,7 @@ from party.evaluation.context import log_metrics_flat
 from party.evaluation.loading import (coherence_parts, efficiency, fit_sc_reference, held_out_subsets,
                                       load_evaluators, tokenizer_sources)
 from party.evaluation.protocol import Embedder, run_protocol
+from party.evaluation.html import write_report
 from party.evaluation.report import report
 from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
 from party.io import atomic_dir, write_json, write_text
@@ -78,10 +80,12 @@ def run(cfg: DictConfig, run_) -> dict:
         write_text(tmp / "tables.md", tables)
         if sc_ref is not None:
             write_json(tmp / "sc_reference.json", sc_ref.to_dict())
+        write_report(tmp / "report.html", cfg, ctx, results, tables, generated)
     flat = log_metrics_flat(results)
     run_.log_metrics({k[: -len("/mean")]: v for k, v in flat.items() if k.endswith("/mean")})
     run_.log_metrics({k: v for k, v in log_metrics_flat(eff, "efficiency/").items()})
     run_.log_file(Path(ec.out_dir) / "metrics.json")
     run_.log_file(Path(ec.out_dir) / "tables.md")
+    run_.log_file(Path(ec.out_dir) / "report.html")
     log.info("evaluation finished in %.1f s\n%s", time.time() - t0, tables)
     return metrics
