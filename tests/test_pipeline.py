@@ -107,3 +107,26 @@ def test_rerun_is_cached_and_runs_are_tracked(pipeline):
             "evaluate"} <= stages
     shown = _sh([str(BIN / "dvc"), "metrics", "show", "--json"], work, env)
     assert "metrics.json" in shown.stdout
+
+
+@pytest.mark.slow
+def test_generator_ablation_grid_on_the_pipeline_outputs(pipeline):
+    """`party gen_ablation` on a 2-point grid: each point trained, generated, scored; one table."""
+    work, env, _ = pipeline
+    grid = work / "grid.yaml"
+    grid.write_text('name: tiny_grid\nmethod: party\naxes:\n  hpf:\n    "off": [generator.methods.party.hpf=false]\n'
+                    '    "on": [generator.methods.party.hpf=true]\n')
+    _sh([str(BIN / "party"), "gen_ablation", f"generator.ablation.sweep={grid}", "generator.ablation.replications=2"],
+        work, env)
+    out = work / "data/ablations/tiny_grid"
+    rows = (out / "table.csv").read_text().splitlines()
+    assert rows[0].startswith("point,hpf,params,val_loss,top1,top1_ci95") and len(rows) == 3
+    assert [r.split(",")[0] for r in rows[1:]] == ["off", "on"]
+    params = [int(r.split(",")[2]) for r in rows[1:]]
+    assert params[1] > params[0]                                   # HPF adds parameters
+    for label in ("off", "on"):
+        assert (out / "points" / label / "party" / "model.pt").exists()
+        assert (out / "points" / label / "generated" / "index.json").exists()
+    with sqlite3.connect(work / "mlruns/mlflow.db") as con:
+        points = {v for (v,) in con.execute("select value from tags where key = 'party.sweep_point'")}
+    assert points >= {"off", "on"}

@@ -132,7 +132,7 @@ def _sweep_points(name):
     spec = yaml.safe_load((CONF / "sweep" / f"{name}.yaml").read_text())
     axes = [list(a.values()) for a in spec["axes"].values()]
     return [list(spec.get("fixed") or []) + [o for ov in combo for o in (ov or [])]
-            for combo in itertools.product(*axes)]
+            for combo in itertools.product(*axes)]          # excluded points included: their keys must exist too
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +158,14 @@ def test_sweep_point_overrides_are_schema_keys(name, composed_params):
 def test_sweep_files_are_well_formed_grids(tmp_path):
     from party.sweep import expand, load_sweep
     for name in _options("sweep"):
-        assert expand(load_sweep(name, CONF / "sweep", required=("stream",)))
+        kind = ("method",) if name.startswith("gen_") else ("stream",)      # gen_ablation | vq_ablation
+        assert expand(load_sweep(name, CONF / "sweep", required=kind))
+    tab5 = expand(load_sweep("gen_tab5", CONF / "sweep", required=("method",)))
+    assert len(tab5) == 7 and "off-on-off" not in [p["label"] for p in tab5]     # PTG alone excluded (paper)
+    ex = tmp_path / "ex.yaml"
+    ex.write_text("method: party\naxes: {a: {x: [], y: []}}\nexclude: [{a: z}]\n")
+    with pytest.raises(ValueError, match="exclude"):
+        load_sweep(str(ex), required=("method",))
     bad = tmp_path / "bad.yaml"
     bad.write_text("stream: holistic\naxes: {window: {}}\n")
     with pytest.raises(ValueError, match="non-empty"):

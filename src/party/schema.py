@@ -655,6 +655,13 @@ class GenTrain:
 
 
 @dataclass
+class GenAblation:
+    sweep: str = MISSING
+    out_dir: str = MISSING
+    replications: int = MISSING
+
+
+@dataclass
 class GenGenerate:
     split: str = MISSING
     repeats: int = MISSING
@@ -690,6 +697,7 @@ class Generator:
     optim: GenOptim = _group(GenOptim)
     train: GenTrain = _group(GenTrain)
     generate: GenGenerate = _group(GenGenerate)
+    ablation: GenAblation = _group(GenAblation)
 
 
 # --------------------------------------------------------------------------- root

@@ -9,6 +9,8 @@ A grid is a YAML file (``conf/sweep/<name>.yaml`` or any path)::
     axes:                              # cartesian product of the axes, in order
       window: {w4: [vqvae.tokenizers.holistic.window=4], w8: [...]}
       model:  {baseline: [vqvae.model.lte.enabled=false, ...], lte_gte: [...]}
+    exclude:                           # optional: points left out ({axis: label} all matching)
+      - {window: w4, model: baseline}
 
 Each point is the caller's config plus the point's overrides (every key must
 exist: a typo fails before anything trains). ``run_grid`` opens a nested MLflow
@@ -50,8 +52,17 @@ def load_sweep(name_or_path: str, conf_dir: str | Path = "conf/sweep",
             raise ValueError(f"{p}: sweep needs a {key!r} entry")
     if not isinstance(spec["axes"], dict) or not all(isinstance(a, dict) and a for a in spec["axes"].values()):
         raise ValueError(f"{p}: 'axes' must map axis names to non-empty {{label: [overrides]}} mappings")
+    labels = [lab for a in spec["axes"].values() for lab in a]
+    if not all(isinstance(lab, str) for lab in labels):
+        raise ValueError(f"{p}: axis labels must be strings, got {[lab for lab in labels if not isinstance(lab, str)]} "
+                         "(YAML reads on/off/yes/no as booleans: quote them, \"on\": [...])")
     spec.setdefault("name", p.stem)
     spec.setdefault("fixed", [])
+    spec.setdefault("exclude", [])
+    for ex in spec["exclude"]:
+        bad = {a: lab for a, lab in (ex or {}).items() if a not in spec["axes"] or lab not in spec["axes"][a]}
+        if not ex or bad:
+            raise ValueError(f"{p}: exclude entry {ex} must map axes to their labels (unknown: {bad or 'empty'})")
     spec["path"] = str(p)
     return spec
 
@@ -62,6 +73,8 @@ def expand(spec: dict) -> list[dict]:
     points = []
     for combo in itertools.product(*[list(a.items()) for _, a in axes]):
         labels = {name: lab for (name, _), (lab, _) in zip(axes, combo)}
+        if any(all(labels[a] == lab for a, lab in ex.items()) for ex in spec.get("exclude", [])):
+            continue
         overrides = list(spec["fixed"]) + [o for _, ov in combo for o in (ov or [])]
         points.append({"label": "-".join(labels.values()), "axes": labels, "overrides": overrides})
     return points

@@ -155,3 +155,57 @@ def held_out_subsets(cfg, ctx) -> dict[str, tuple[set[str], str]]:
     pairs = ", ".join(f"{a}+{g}" for a, g in held)
     return {"held_out": (ids, f"{len(ids)} {cfg.eval.split} clips of the arm x leg combinations held out of "
                               f"training ({pairs}): compositional generalisation")}
+
+
+#: (stream key or 'coherence', metric) columns a generator ablation row reports; "{whole}" / "{part}"
+#: expand to ``dataset.parts`` streams
+GENERATION_COLUMNS = (("{whole}", "top1"), ("{whole}", "top3"), ("{whole}", "fid"), ("{whole}", "mm_dist"),
+                      ("{whole}", "diversity"), ("{part}", "top1"), ("{part}", "fid"), ("coherence", "tc"),
+                      ("coherence", "sc"))
+
+
+def generation_columns(ctx) -> list[str]:
+    """Column names of ``generation_scorer`` rows (each with a ``_ci95`` twin)."""
+    out = []
+    for stream, metric in GENERATION_COLUMNS:
+        for s in (ctx.layout.part_streams if stream == "{part}" else [stream.format(whole=ctx.layout.whole_stream)]):
+            name = metric if s == ctx.layout.whole_stream else f"{s}_{metric}"
+            out += [name, f"{name}_ci95"]
+    return out
+
+
+def generation_scorer(cfg, replications: int):
+    """A function ``generated_dir -> {column: value}`` scoring one generated run with the
+    ``evaluate`` stage's protocol (every trained evaluator, TC/SC when on, ``replications``
+    replications); data, evaluators, coherence reference and ground truth load once."""
+    from party.evaluation.protocol import Embedder, run_protocol
+    from party.evaluation.sources import GeneratedSource, GroundTruthSource
+    from party.training import resolve_device
+
+    ec = cfg.eval
+    ctx = load_context(cfg)
+    device = resolve_device(ec.device)
+    evaluators = load_evaluators(cfg, ctx, device)
+    parts = coherence_parts(cfg, ctx) if ec.coherence.enabled else None
+    sc_ref = (fit_sc_reference(ctx, parts, ec.coherence.reference_split, ec.coherence.reference_max_clips, ec.seed)
+              if parts is not None else None)
+    protocol = OmegaConf.to_container(ec, resolve=True)
+    protocol.update(replications=replications, sources={**protocol["sources"], "ground_truth": False})
+    gt = GroundTruthSource(ctx, ec.split, ec.max_motion_len, ec.unit_length)
+    embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
+    whole = ctx.layout.whole_stream
+
+    def score(gen_dir: Path) -> dict:
+        src = GeneratedSource(gen_dir, ctx)
+        res = run_protocol(protocol, gt, embedders, {}, [src], parts, sc_ref, ctx.n_joints, ctx.layout,
+                           progress=False)[src.name]
+        row = {}
+        for stream, metric in GENERATION_COLUMNS:
+            for s in (ctx.layout.part_streams if stream == "{part}" else [stream.format(whole=whole)]):
+                stat = res.get(s, {}).get(metric)
+                name = metric if s == whole else f"{s}_{metric}"
+                if stat is not None:
+                    row[name], row[f"{name}_ci95"] = round(float(stat["mean"]), 4), round(float(stat["ci95"]), 4)
+        return row
+
+    return score

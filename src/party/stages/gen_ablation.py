@@ -1,0 +1,61 @@
+"""``party gen_ablation generator.ablation.sweep=<name>``: a generator ablation grid, one table.
+
+The grid is declared in ``conf/sweep/<name>.yaml`` (``gen_tab5``: PG x PTG x HPF, Tab. 5 / S9;
+``gen_s13``: K = 1..6; ``gen_s14``: aux loss off/on; ``gen_s17``: PG window T = 1..5)::
+
+    name: gen_tab5
+    method: party                      # the generator.methods entry the overrides modify
+    axes: {pg: {off: [generator.methods.party.pg=false], on: [...]}, ...}
+    exclude: [{pg: off, ptg: on, hpf: off}]
+
+Each point is the stage's config plus its overrides: ``train_generator`` into
+``<generator.ablation.out_dir>/<name>/points/<label>/<method>/`` (resumable: rerunning a sweep
+finds finished points' checkpoints and only re-scores), ``generate`` of ``generator.generate.split``
+next to it (``generated/``), then the ``evaluate`` protocol on that run
+(``generator.ablation.replications`` replications; every trained evaluator; TC/SC) as one MLflow
+run nested under the sweep's parent run. The table (``table.md`` / ``table.csv``: R-Precision,
+FID, MM-Dist, Diversity, part-level Top-1 / FID, TC, SC, each with its 95% CI) goes to
+``<out_dir>/<name>/`` and the parent run. Upstream outputs (tokens, embeddings, tokenizers,
+evaluators) are read, never rebuilt: run ``dvc repro`` first.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from party.data.context import load_context
+from party.evaluation.loading import generation_columns, generation_scorer
+from party.generator.generate import generate_run
+from party.generator.train import train_generator
+from party.stage import stage
+from party.sweep import load_sweep, run_grid
+
+
+@stage("gen_ablation", run_name=lambda cfg: f"gen_ablation-{Path(cfg.generator.ablation.sweep).stem}")
+def run(cfg, run_) -> list[dict]:
+    ab = cfg.generator.ablation
+    spec = load_sweep(ab.sweep, required=("method",))
+    method = str(spec["method"])
+    if method not in cfg.generator.methods:
+        raise KeyError(f"{spec['path']}: method {method!r} is not in generator.methods ({sorted(cfg.generator.methods)})")
+    out = Path(ab.out_dir) / spec["name"]
+    run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
+    score = generation_scorer(cfg, ab.replications)
+    ctx = load_context(cfg)
+    columns = ["point", *spec["axes"], "params", "val_loss", *generation_columns(ctx), "steps"]
+
+    def point(pcfg, p: dict, prun) -> dict:
+        home = out / "points" / p["label"]
+        pcfg = OmegaConf.merge(pcfg, {"generator": {"out_dir": str(home)}})
+        m = train_generator(pcfg, method, home / method, prun)
+        gen = generate_run(pcfg, method, home / "generated", progress=pcfg.progress)
+        row = {"params": int(m["params"]["total"]), "val_loss": round(m["final"]["val/loss"], 4),
+               "steps": m["step"], "ait_ms": gen["ait_ms"], **score(home / "generated")}
+        prun.log_metrics({k: v for k, v in row.items() if isinstance(v, (int, float))})
+        return row
+
+    rows = run_grid(cfg, spec, "train_generator", point, out, columns,
+                    "Each cell: mean over the replications; `_ci95`: its 95% CI half-width (evaluate protocol).\n")
+    print((out / "table.md").read_text())
+    return rows
