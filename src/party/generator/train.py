@@ -234,9 +234,10 @@ def _figures(cfg, run, val_ds, method: str, kind: str) -> list:
         emb = embed_texts(cfg, texts)
         decode = Decoder(g.tokenizers_dir, kind, ctx, list(g.streams))
 
-        def samples(model):
+        def render(model):
             feats = generate_batches(model, emb, None, g.generate, decode, progress=False)
             return [recover_from_ric_np(f, ctx.n_joints) for f in feats], texts
+        samples = render
     return [TrainingFigures(run, batch, samples, ctx.index.skeleton, ctx.index.fps)]
 
 
