@@ -121,6 +121,7 @@ def test_generator_ablation_grid_on_the_pipeline_outputs(pipeline):
     out = work / "data/ablations/tiny_grid"
     rows = (out / "table.csv").read_text().splitlines()
     assert rows[0].startswith("point,hpf,params,val_loss,top1,top1_ci95") and len(rows) == 3
+    assert all(r.split(",")[-1] == "done" for r in rows[1:])           # the status column
     assert [r.split(",")[0] for r in rows[1:]] == ["off", "on"]
     params = [int(r.split(",")[2]) for r in rows[1:]]
     assert params[1] > params[0]                                   # HPF adds parameters

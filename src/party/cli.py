@@ -5,6 +5,7 @@
     party params [group=choice ...]   compose conf/ into params.yaml (as `dvc exp run` does)
     party params --check              fail if params.yaml is stale w.r.t. conf/
     party stages                      list the stages
+    party sweep-status <out_dir>      a grid's points: done / running / failed / pending
 
 A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function (built
 with ``party.stage.stage``); it runs as a Hydra app whose primary config is
@@ -100,6 +101,25 @@ def cmd_params(argv: list[str]) -> int:
     return 0
 
 
+def cmd_sweep_status(argv: list[str]) -> int:
+    """Print the status of each grid folder given (exit 1 if a point failed, 2 if none ran)."""
+    from party.sweep import read_status, status_table
+    if not argv:
+        print("usage: party sweep-status <sweep out_dir> [...]  (e.g. data/ablations/gen_tab5)", file=sys.stderr)
+        return 2
+    code = 0
+    for d in argv:
+        st = read_status(d)
+        if not st:
+            print(f"{d}: no status.json (the sweep has not run here)", file=sys.stderr)
+            code = max(code, 2)
+            continue
+        print(status_table(st))
+        if any(p["status"] == "failed" for p in st["points"].values()):
+            code = max(code, 1)
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
     from party.schema import ConfigError
     try:
@@ -121,6 +141,8 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd == "stages":
         print("\n".join(available_stages()))
         return 0
+    if cmd == "sweep-status":
+        return cmd_sweep_status(rest)
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2

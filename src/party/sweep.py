@@ -17,6 +17,15 @@ exist: a typo fails before anything trains). ``run_grid`` opens a nested MLflow
 run per point (tags ``party.sweep``, ``party.sweep_point``) under the active
 (parent) run, calls ``point_fn(point_cfg, point, run)`` for its table row, and
 writes ``table.md`` / ``table.csv`` with the given columns plus one column per axis.
+
+Unattended: ``<out_dir>/status.json`` records every point (``running`` / ``done`` /
+``failed`` with the error, the MLflow run id, start and end times, the hash of the
+point's config), rewritten atomically as points start and end; ``party sweep-status
+<out_dir>`` prints it. A point that raises is recorded ``failed`` (its MLflow run FAILED)
+and the grid goes on; at the end the tables are written with the failed rows and the
+stage raises, naming them (a nonzero exit for cron). Rerunning a grid reuses the row of
+every ``done`` point whose config hash is unchanged, so an interrupted or partly failed
+sweep resumes where it stopped.
 """
 from __future__ import annotations
 
@@ -96,7 +105,7 @@ def apply_overrides(cfg, overrides: list[str], where: str = "sweep"):
 def tables(rows: list[dict], spec: dict, columns: Sequence[str], notes: str = "") -> tuple[str, str]:
     """(Markdown, CSV) of the grid's rows: ``columns`` then one column per axis (CSV)."""
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(columns) + list(spec["axes"]), extrasaction="ignore")
+    w = csv.DictWriter(buf, fieldnames=list(dict.fromkeys([*columns, *spec["axes"]])), extrasaction="ignore")
     w.writeheader()
     w.writerows(rows)
     head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
@@ -105,23 +114,84 @@ def tables(rows: list[dict], spec: dict, columns: Sequence[str], notes: str = ""
     return md, buf.getvalue()
 
 
+def _point_key(pcfg) -> str:
+    import hashlib
+    import json
+    plain = OmegaConf.to_container(pcfg, resolve=True)
+    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def read_status(out_dir: str | Path) -> dict:
+    """``status.json`` of a grid's output folder ({} when the grid never ran)."""
+    import json
+    p = Path(out_dir) / "status.json"
+    if not p.exists():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{p}: unreadable sweep status ({e}); delete it to rerun every point") from e
+
+
+def _write_status(out: Path, status: dict) -> None:
+    from party.io import write_json
+    write_json(out / "status.json", status)
+
+
+def status_table(status: dict) -> str:
+    """The points of ``status.json`` as a text table (what ``party sweep-status`` prints)."""
+    points = status.get("points", {})
+    lines = [f"sweep {status.get('name', '?')}: " + ", ".join(
+        f"{sum(1 for p in points.values() if p['status'] == k)} {k}" for k in ("done", "running", "failed", "pending"))]
+    for label, p in points.items():
+        extra = p.get("error") or p.get("run_id") or ""
+        lines.append(f"  {label:<24} {p['status']:<8} {p.get('finished') or p.get('started') or '':<20} {extra}")
+    return "\n".join(lines)
+
+
 def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], dict], out_dir: str | Path,
              columns: Sequence[str], notes: str = "") -> list[dict]:
     """Run every point of ``spec`` (see the module docstring); returns the table rows.
 
     Call inside the sweep's (parent) run: the parent gets ``sweep.yaml``, one metric per
     point and column that is a number, and the tables."""
+    import time
     points = expand(spec)
     out = Path(out_dir)
     parent = tracking.active_run_id()
     tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
-    rows = []
+    old = read_status(out).get("points", {})
+    status = {"name": spec["name"], "sweep": spec["path"],
+              "points": {p["label"]: {"status": "pending"} for p in points}}
+    now = lambda: time.strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
+    rows, failed = [], []
     for p in points:
         pcfg = apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}")
+        key = _point_key(pcfg)
+        prev = old.get(p["label"], {})
+        if prev.get("status") == "done" and prev.get("key") == key and "row" in prev:
+            log.info("sweep %s: point %s done before (%s), reusing its row", spec["name"], p["label"],
+                     prev.get("finished"))
+            status["points"][p["label"]] = prev
+            rows.append(prev["row"])
+            continue
         log.info("sweep %s: point %s %s", spec["name"], p["label"], p["overrides"])
-        with tracking.start_run(pcfg, stage, run_name=f"{spec['name']}/{p['label']}", parent_run_id=parent,
-                                tags={"party.sweep": spec["name"], "party.sweep_point": p["label"]}) as prun:
-            row = {"point": p["label"], **p["axes"], **point_fn(pcfg, p, prun)}
+        entry = status["points"][p["label"]] = {"status": "running", "key": key, "started": now()}
+        _write_status(out, status)
+        try:
+            with tracking.start_run(pcfg, stage, run_name=f"{spec['name']}/{p['label']}", parent_run_id=parent,
+                                    tags={"party.sweep": spec["name"], "party.sweep_point": p["label"]}) as prun:
+                entry["run_id"] = prun.info.run_id
+                row = {"point": p["label"], **p["axes"], **point_fn(pcfg, p, prun)}
+        except Exception as e:          # recorded, and the grid goes on (KeyboardInterrupt stops it)
+            log.exception("sweep %s: point %s failed", spec["name"], p["label"])
+            entry.update(status="failed", error=f"{type(e).__name__}: {e}"[:500], finished=now())
+            failed.append(p["label"])
+            rows.append({"point": p["label"], **p["axes"], "status": "failed"})
+            _write_status(out, status)
+            continue
+        entry.update(status="done", finished=now(), row=row)
+        _write_status(out, status)
         rows.append(row)
         tracking.log_metrics({f"{p['label']}.{k}": v for k, v in row.items()
                               if isinstance(v, (int, float)) and not isinstance(v, bool)})
@@ -130,4 +200,8 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
     write_text(out / "table.csv", csv_text)
     tracking.log_file(out / "table.md")
     tracking.log_file(out / "table.csv")
+    tracking.log_file(out / "status.json")
+    if failed:
+        raise RuntimeError(f"sweep {spec['name']}: {len(failed)} of {len(points)} points failed ({', '.join(failed)}); "
+                           f"see {out / 'status.json'}; rerun the sweep to retry them (finished points are reused)")
     return rows

@@ -43,7 +43,7 @@ def run(cfg, run_) -> list[dict]:
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
     score = generation_scorer(cfg, ab.replications)
     ctx = load_context(cfg)
-    columns = ["point", *spec["axes"], "params", "val_loss", *generation_columns(ctx), "steps"]
+    columns = ["point", *spec["axes"], "params", "val_loss", *generation_columns(ctx), "steps", "status"]
 
     def point(pcfg, p: dict, prun) -> dict:
         home = out / "points" / p["label"]
@@ -51,7 +51,7 @@ def run(cfg, run_) -> list[dict]:
         m = train_generator(pcfg, method, home / method, prun)
         gen = generate_run(pcfg, method, home / "generated", progress=pcfg.progress)
         row = {"params": int(m["params"]["total"]), "val_loss": round(m["final"]["val/loss"], 4),
-               "steps": m["step"], "ait_ms": gen["ait_ms"], **score(home / "generated")}
+               "steps": m["step"], "ait_ms": gen["ait_ms"], **score(home / "generated"), "status": "done"}
         prun.log_metrics({k: v for k, v in row.items() if isinstance(v, (int, float))})
         return row
 

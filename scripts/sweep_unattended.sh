@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Run (or resume) one ablation grid unattended, e.g. from cron or a systemd timer:
+#   bash scripts/sweep_unattended.sh gen_ablation gen_tab5      # party gen_ablation generator.ablation.sweep=gen_tab5
+#   bash scripts/sweep_unattended.sh vq_ablation vq_tab4        # party vq_ablation vqvae.ablation.sweep=vq_tab4
+# One run at a time per grid (flock); finished points are reused, failed ones retried; the
+# log goes to logs/<grid>.log and the status table is appended after every run. Exit status:
+# the sweep's (nonzero when a point failed, so cron mails it / systemd marks the unit failed).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+stage=${1:?usage: sweep_unattended.sh <gen_ablation|vq_ablation> <grid> [overrides...]}
+grid=${2:?usage: sweep_unattended.sh <gen_ablation|vq_ablation> <grid> [overrides...]}
+shift 2
+case "$stage" in
+  gen_ablation) key=generator.ablation.sweep; out=$(.venv/bin/python -c "import yaml;print(yaml.safe_load(open('params.yaml'))['generator']['ablation']['out_dir'])") ;;
+  vq_ablation) key=vqvae.ablation.sweep; out=$(.venv/bin/python -c "import yaml;print(yaml.safe_load(open('params.yaml'))['vqvae']['ablation']['out_dir'])") ;;
+  *) echo "unknown sweep stage $stage (gen_ablation | vq_ablation)" >&2; exit 2 ;;
+esac
+mkdir -p logs
+log="logs/${grid}.log"
+exec 9>"logs/.${grid}.lock"
+if ! flock -n 9; then
+  echo "$(date -Is) ${grid}: already running, skipped" >> "$log"
+  exit 0
+fi
+echo "$(date -Is) ${grid}: start" >> "$log"
+.venv/bin/party "$stage" "$key=$grid" "$@" >> "$log" 2>&1
+rc=$?
+.venv/bin/party sweep-status "$out/$grid" >> "$log" 2>&1
+echo "$(date -Is) ${grid}: exit $rc" >> "$log"
+exit $rc
