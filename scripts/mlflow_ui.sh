@@ -1,6 +1,13 @@
 #!/usr/bin/env bash
 # Open the MLflow UI on the project's tracking store (http://127.0.0.1:5000).
+# Uses .venv/bin/mlflow when present, else the mlflow on PATH.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-exec .venv/bin/mlflow ui --backend-store-uri "sqlite:///$PWD/mlruns/mlflow.db" \
+MLFLOW=.venv/bin/mlflow
+[ -x "$MLFLOW" ] || MLFLOW=$(command -v mlflow || true)
+if [ -z "$MLFLOW" ]; then
+  echo "mlflow not found: run bash scripts/setup.sh (or pip install mlflow)" >&2
+  exit 1
+fi
+exec "$MLFLOW" ui --backend-store-uri "sqlite:///$PWD/mlruns/mlflow.db" \
   --default-artifact-root "$PWD/mlruns/artifacts" --host 127.0.0.1 --port "${PORT:-5000}"

@@ -62,3 +62,14 @@ def test_dvc_stages_follow_the_configured_streams():
     names = out.stdout.split()
     for stage in ("train_vqvae", "train_evaluator"):
         assert [n.split("@")[1] for n in names if n.startswith(f"{stage}@")] == streams, names
+
+
+def test_stages_list_describes_each_and_help_does_not_start_hydra(capsys):
+    from party.cli import available_stages, main
+    assert main(["stages"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == len(available_stages()) and all(len(line.split(None, 1)) == 2 for line in lines)
+    assert main(["train_vqvae", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("party train_vqvae [key=value") and "vqvae.stream" in out
+    assert main(["params", "--help"]) == 0 and "--check" in capsys.readouterr().out

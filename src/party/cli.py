@@ -30,6 +30,18 @@ STAGE_ENV = "PARTY_STAGE"
 LAUNCHER = Path(__file__).resolve().parent / "launch" / "party_stage.py"
 
 
+def stage_summary(stage: str) -> tuple[str, str]:
+    """(one-line description, whole docstring) of ``party.stages.<stage>``, read without importing it."""
+    import ast
+    path = Path(stages_pkg.__path__[0]) / f"{stage}.py"
+    doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+    first = doc.split("\n\n", 1)[0].replace("\n", " ")
+    if ":" in first and first.startswith("``party") or first.startswith("Stage ``"):
+        first = first.split(":", 1)[1].strip()
+    first = first.split(". ", 1)[0].replace("``", "").split(" (", 1)[0].rstrip(".")
+    return first, doc
+
+
 def available_stages() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(stages_pkg.__path__) if not m.name.startswith("_"))
 
@@ -85,6 +97,14 @@ def run_stage(stage: str, argv: list[str]):
     return app()
 
 
+PARAMS_HELP = """party params [group=choice | key=value ...] [--check]
+
+Compose conf/ (conf/config.yaml and its groups: dataset, text, vqvae, evaluator, generator,
+trainer, ...; experiment=<name> applies conf/experiment/<name>.yaml) into params.yaml, the
+file every stage and `dvc repro` read. A wrong type or an unknown key fails naming it.
+  --check   exit 1 if params.yaml differs from what conf/ (with these overrides) composes"""
+
+
 def cmd_params(argv: list[str]) -> int:
     from party.config import params_stale, write_params
     check = "--check" in argv
@@ -137,15 +157,24 @@ def _main(argv: list[str] | None = None) -> int:
         return 0
     cmd, rest = argv[0], argv[1:]
     if cmd == "params":
+        if "-h" in rest or "--help" in rest:
+            print(PARAMS_HELP)
+            return 0
         return cmd_params(rest)
     if cmd == "stages":
-        print("\n".join(available_stages()))
+        for name in available_stages():
+            print(f"{name:<20} {stage_summary(name)[0]}")
         return 0
     if cmd == "sweep-status":
         return cmd_sweep_status(rest)
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2
+    if "-h" in rest or "--help" in rest:
+        print(f"party {cmd} [key=value ...] [--multirun ...]\n\n{stage_summary(cmd)[1]}\n\n"
+              "Reads params.yaml (compose it with `party params`); key=value overrides any key; "
+              "Hydra's own help: --hydra-help; the composed config: --cfg job.")
+        return 0
     run_stage(cmd, rest)
     return 0
 
