@@ -63,9 +63,9 @@ def test_large_batch_r_precision_only_when_measured():
 def test_subset_table_lists_every_stream_of_the_subset():
     from party.evaluation.report import subset_table
     stat = lambda v: {"mean": v, "ci95": 0.01, "n": 3}  # noqa: E731
-    res = {"ground_truth": {"holistic@held_out": {"top1": stat(0.5), "fid": stat(0.0)},
-                            "arms@held_out": {"top1": stat(0.4)}},
-           "party": {"holistic": {"top1": stat(0.3)}, "arms@held_out": {"top1": stat(0.2)}}}
+    res = {"ground_truth": {"held_out": {"holistic": {"top1": stat(0.5), "fid": stat(0.0)},
+                                         "arms": {"top1": stat(0.4)}}},
+           "party": {"holistic": {"top1": stat(0.3)}, "held_out": {"arms": {"top1": stat(0.2)}}}}
     t = subset_table(res, "held_out", ["holistic", "arms", "legs"], "3 clips")
     assert t.startswith("### Subset `held_out`: 3 clips")
     rows = [line for line in t.splitlines() if line.startswith("| ") and "Method" not in line]

@@ -129,11 +129,11 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                  generated: list[GeneratedSource],
                  parts: Parts | None, sc_ref: SCReference | None, n_joints: int, layout=None,
                  progress: bool = True, subsets: Mapping[str, set[str]] | None = None) -> dict[str, dict[str, dict]]:
-    """-> {source: {stream|'coherence'|'reconstruction'|'<stream>@<subset>': {metric: {mean, ci95, n}}}}
+    """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}, <subset>: {stream: ...}}}
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
     (the same draws and embeddings; R-Precision pools within the subset, FID against the
-    reference draw of the same clips), under ``<stream>@<name>`` of generated runs and ground truth."""
+    reference draw of the same clips), under ``<name>.<stream>`` of generated runs and ground truth."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     coh = cfg["coherence"]
     scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
@@ -176,6 +176,10 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     z = float(cfg["ci_z"])
     order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
     out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
+    for d in out.values():                      # "<stream>@<subset>" -> d[<subset>][<stream>]
+        for k in [k for k in d if "@" in k]:
+            stream, sub = k.split("@", 1)
+            d.setdefault(sub, {})[stream] = d.pop(k)
     if "holistic" in embedders:
         for g in generated:
             mm = multimodality(g, embedders["holistic"], cfg["multimodality"], int(cfg["seed"]))

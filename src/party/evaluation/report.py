@@ -116,11 +116,11 @@ def efficiency_table(efficiency: Mapping) -> str:
 
 
 def subset_table(results: Mapping, subset: str, streams: Sequence[str], description: str) -> str:
-    """Retrieval metrics on one subset of the clips (``<stream>@<subset>`` results), every stream."""
+    """Retrieval metrics on one subset of the clips (``results[source][subset][stream]``), every stream."""
     rows = []
     for src, d in results.items():
         for s in streams:
-            p = d.get(f"{s}@{subset}")
+            p = d.get(subset, {}).get(s)
             if p:
                 rows.append([label(src), s.capitalize()] + [fmt(p.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
     if not rows:
