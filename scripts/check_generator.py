@@ -40,6 +40,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=20)
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--generators", default=None, help="folder of trained methods (default: generator.out_dir)")
     a = ap.parse_args()
     cfg = OmegaConf.load(a.params)
     ctx = load_context(cfg)
@@ -54,7 +55,7 @@ def main() -> None:
     gcfg = OmegaConf.merge(cfg.generator.generate, {"sampling": "sample"})
     report = {}
     for m in a.methods:
-        model, meta = load_generator(Path(cfg.generator.out_dir) / m)
+        model, meta = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
         lengths = {s: __import__("torch").full((len(texts),), max(1, a.frames // meta["windows"][s]))
                    for s in model.spec.streams}
         feats = generate_batches(model, emb, lengths, gcfg, Decoder(meta["tokenizers_dir"], model.spec.kind, ctx,
