@@ -650,6 +650,7 @@ class GenTrain:
     threads: Optional[int] = MISSING
     log_checkpoint: bool = MISSING
     render_samples: int = MISSING
+    render_max_frames: int = MISSING
     prompts: List[str] = MISSING
     untrained_loss_ratio: float = MISSING
 

@@ -47,11 +47,11 @@ def test_training_figures_log_pngs_and_a_sample_gif():
     run = FakeRun()
     joints = [np.random.default_rng(0).normal(size=(12, 22, 3)).astype(np.float32)]
     batch = {**make_batch(), "caption": ["a person waves"] * 4}
-    cb = TrainingFigures(run, batch, lambda m: (joints, ["a person waves"]), "t2m", 20.0)
+    cb = TrainingFigures(run, batch, lambda m: (joints, ["a person waves"]), "t2m", 20.0, 60)
     written = cb.log_figures(model, {"val/gate_arms_0": 0.5, "val/gate_arms_1": 0.5, "val/gate_arms_2": 0.0,
                                      "val/gate_legs_0": 1.0, "val/gate_legs_1": 0.0, "val/gate_legs_2": 0.0}, 40)
     assert written == run.files == ["figures/hpf_attention_step000040.png", "figures/ptg_gates_step000040.png",
                                     "samples/samples_step000040.gif"]
     hol = build("holistic").eval()                  # no HPF, no PTG, no samples: nothing to log
     run2 = FakeRun()
-    assert TrainingFigures(run2, batch, None, "t2m", 20.0).log_figures(hol, {}, 1) == []
+    assert TrainingFigures(run2, batch, None, "t2m", 20.0, 60).log_figures(hol, {}, 1) == []

@@ -164,14 +164,16 @@ GENERATION_COLUMNS = (("{whole}", "top1"), ("{whole}", "top3"), ("{whole}", "fid
                       ("coherence", "sc"))
 
 
+def _generation_keys(layout):
+    """(results key, metric, column name) of every ``GENERATION_COLUMNS`` entry, streams expanded."""
+    for stream, metric in GENERATION_COLUMNS:
+        for s in (layout.part_streams if stream == "{part}" else [stream.format(whole=layout.whole_stream)]):
+            yield s, metric, (metric if s == layout.whole_stream else f"{s}_{metric}")
+
+
 def generation_columns(ctx) -> list[str]:
     """Column names of ``generation_scorer`` rows (each with a ``_ci95`` twin)."""
-    out = []
-    for stream, metric in GENERATION_COLUMNS:
-        for s in (ctx.layout.part_streams if stream == "{part}" else [stream.format(whole=ctx.layout.whole_stream)]):
-            name = metric if s == ctx.layout.whole_stream else f"{s}_{metric}"
-            out += [name, f"{name}_ci95"]
-    return out
+    return [c for _, _, name in _generation_keys(ctx.layout) for c in (name, f"{name}_ci95")]
 
 
 def generation_scorer(cfg, replications: int):
@@ -193,19 +195,16 @@ def generation_scorer(cfg, replications: int):
     protocol.update(replications=replications, sources={**protocol["sources"], "ground_truth": False})
     gt = GroundTruthSource(ctx, ec.split, ec.max_motion_len, ec.unit_length)
     embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
-    whole = ctx.layout.whole_stream
 
     def score(gen_dir: Path) -> dict:
         src = GeneratedSource(gen_dir, ctx)
         res = run_protocol(protocol, gt, embedders, {}, [src], parts, sc_ref, ctx.n_joints, ctx.layout,
                            progress=False)[src.name]
         row = {}
-        for stream, metric in GENERATION_COLUMNS:
-            for s in (ctx.layout.part_streams if stream == "{part}" else [stream.format(whole=whole)]):
-                stat = res.get(s, {}).get(metric)
-                name = metric if s == whole else f"{s}_{metric}"
-                if stat is not None:
-                    row[name], row[f"{name}_ci95"] = round(float(stat["mean"]), 4), round(float(stat["ci95"]), 4)
+        for s, metric, name in _generation_keys(ctx.layout):
+            stat = res.get(s, {}).get(metric)
+            if stat is not None:
+                row[name], row[f"{name}_ci95"] = round(float(stat["mean"]), 4), round(float(stat["ci95"]), 4)
         return row
 
     return score

@@ -133,8 +133,9 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
     (the same draws and embeddings; R-Precision pools within the subset, FID against the
-    reference draw of the same clips), under ``<name>.<stream>`` of generated runs and ground truth."""
+    reference draw of the same clips), under ``[source][<name>][<stream>]`` of generated runs and ground truth."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
     scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
@@ -168,7 +169,7 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                         continue
                     for k, (ids, sref) in sub_refs.items():
                         r = _rows_of(ms, ids)
-                        rows[name][f"{stream}@{k}"].append(retrieval_metrics(t[r], m[r], sref, cfg, rng))
+                        sub_rows[name][k][stream].append(retrieval_metrics(t[r], m[r], sref, cfg, rng))
         if scorer is not None:
             for name, (ms, _, full_body) in sets.items():
                 if full_body:
@@ -176,10 +177,9 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     z = float(cfg["ci_z"])
     order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
     out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
-    for d in out.values():                      # "<stream>@<subset>" -> d[<subset>][<stream>]
-        for k in [k for k in d if "@" in k]:
-            stream, sub = k.split("@", 1)
-            d.setdefault(sub, {})[stream] = d.pop(k)
+    for name, subs in sub_rows.items():
+        for k, by_stream in subs.items():
+            out[name][k] = {s: aggregate(v, z) for s, v in by_stream.items()}
     if "holistic" in embedders:
         for g in generated:
             mm = multimodality(g, embedders["holistic"], cfg["multimodality"], int(cfg["seed"]))

@@ -40,7 +40,7 @@ def attention_figure(maps: Mapping[str, torch.Tensor], lengths: Mapping[str, int
     hol = next(iter(lengths))
     L_h = lengths[hol]
     n_p = [lengths[p] for p in parts]
-    Lh_full = maps["self"].shape[-1] - sum(m.shape[-1] for m in (maps[p] for p in parts)) - len(parts)
+    Lh_full = maps[parts[0]].shape[-2]          # the batch's holistic positions (cross-attention queries)
     keep = list(range(L_h))                     # the sample's positions in [hol; SPLIT; p1; SPLIT; p2]
     ticks, names, off = [0], [hol], Lh_full
     for p, n in zip(parts, n_p):
@@ -98,13 +98,14 @@ def gate_ratios(values: Mapping[str, float], parts: Sequence[str]) -> dict[str, 
 class TrainingFigures(L.Callback):
     """Logs the figures of this module to ``run`` after every validation (rank zero only).
 
-    batch: one fixed validation batch (attention maps); samples: a callable
+    batch: one fixed validation batch (attention maps of its first sample); samples: a callable
     ``(model) -> (list of (T, J, 3) joints, titles)`` or None (no samples).
     """
 
-    def __init__(self, run, batch: Mapping, samples: Callable | None, skeleton: str, fps: float):
+    def __init__(self, run, batch: Mapping, samples: Callable | None, skeleton: str, fps: float,
+                 max_frames: int):
         self.run, self.batch, self.samples = run, batch, samples
-        self.skeleton, self.fps = skeleton, fps
+        self.skeleton, self.fps, self.max_frames = skeleton, fps, max_frames
 
     def on_validation_end(self, trainer, lit):
         if not trainer.is_global_zero or trainer.sanity_checking:
@@ -138,7 +139,7 @@ class TrainingFigures(L.Callback):
                 from party.render import render_comparison
                 joints, titles = self.samples(model)
                 path = render_comparison(joints, titles, tmp / f"samples_step{step:06d}.gif", self.skeleton,
-                                         fps=self.fps, max_frames=60)
+                                         fps=self.fps, max_frames=self.max_frames)
                 self.run.log_file(path, "samples")
                 written.append(f"samples/{path.name}")
         return written

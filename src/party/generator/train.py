@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 FORMAT = "party.generator/1"
 # train keys that do not change what a step computes
 _RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "resume", "num_workers", "threads", "log_checkpoint",
-                   "render_samples", "prompts", "untrained_loss_ratio"}
+                   "render_samples", "render_max_frames", "prompts",
+                   "untrained_loss_ratio"}
 
 
 def build_model(cfg, method: str, ds) -> PartyGenerator:
@@ -225,7 +226,7 @@ def _figures(cfg, run, val_ds, method: str, kind: str) -> list:
 
     g = cfg.generator
     ctx = load_context(cfg)
-    batch = collate_generator([val_ds[i] for i in range(min(4, len(val_ds)))], val_ds.pad)
+    batch = collate_generator([val_ds[0]], val_ds.pad)                 # the figure shows one sample
     samples = None
     n, prompts = g.train.render_samples, list(g.train.prompts)
     if n > 0 and prompts:
@@ -238,7 +239,7 @@ def _figures(cfg, run, val_ds, method: str, kind: str) -> list:
             feats = generate_batches(model, emb, None, g.generate, decode, progress=False)
             return [recover_from_ric_np(f, ctx.n_joints) for f in feats], texts
         samples = render
-    return [TrainingFigures(run, batch, samples, ctx.index.skeleton, ctx.index.fps)]
+    return [TrainingFigures(run, batch, samples, ctx.index.skeleton, ctx.index.fps, g.train.render_max_frames)]
 
 
 def _report(method: str, m: dict, max_ratio: float) -> None:
