@@ -65,7 +65,7 @@ def test_bad_files_are_skipped_with_reason(fixture_root):
     reasons = {x["name"]: x for x in rep.rejected}
     assert "(T, 263)" in reasons["000002"]["reason"] and "000002.npy" in reasons["000002"]["reason"]
     assert "NaN or Inf" in reasons["000003"]["reason"]
-    assert "unreadable" in reasons["000004"]["reason"]
+    assert "not a valid .npy file" in reasons["000004"]["reason"]
     assert "no valid caption" in reasons["M000004"]["reason"]
     assert "length 10" in reasons["M000002"]["reason"]
     assert "999999.npy: file missing" in reasons["999999"]["reason"]
@@ -73,6 +73,55 @@ def test_bad_files_are_skipped_with_reason(fixture_root):
     assert {c["id"] for c in rep.clips} == {"000001", "000001#0-50", "M000001"}
     with pytest.raises(DatasetError, match="strict"):
         scan(r, strict=True)
+
+
+GOOD = "a man walks.#a/DET man/NOUN walk/VERB#0.0#0.0\n"
+
+
+@pytest.mark.parametrize("case", ["bad_line", "short_timed", "timed_after_end", "two_splits"])
+def test_strict_stops_on_every_kind_of_problem(fixture_root, case):
+    """Each of these alone is skipped and counted by default, and stops a strict scan,
+    naming the file (and line)."""
+    r = fixture_root
+    where = {"bad_line": ("texts/000002.txt", GOOD + "broken line without fields\n", "000002.txt:2"),
+             "short_timed": ("texts/000002.txt", GOOD + "he walks.#he/PRON walk/VERB#0.0#1.0\n",
+                             "000002.txt:2"),
+             "timed_after_end": ("texts/000002.txt", GOOD + "he walks.#he/PRON walk/VERB#9.0#11.0\n",
+                                 "000002.txt:2"),
+             "two_splits": ("val.txt", "000003\n000002\n", "val.txt")}[case]
+    (r / where[0]).write_text(where[1])
+    rep = scan(r)
+    assert len(rep.rejected) + len(rep.bad_lines) == 1
+    with pytest.raises(DatasetError, match=rf"{where[2]}.*strict"):
+        scan(r, strict=True)
+
+
+def test_new_joints_checked_against_features(fixture_root):
+    r = fixture_root
+    ok = np.load(r / "new_joints/000002.npy")
+    np.save(r / "new_joints/000002.npy", ok + 0.05)                                    # another motion
+    np.save(r / "new_joints/000003.npy", ok[:, :10])                                    # wrong shape
+    bad = np.load(r / "new_joints/000004.npy")
+    bad[3, 2, 1] = np.nan
+    np.save(r / "new_joints/000004.npy", bad)                                          # NaN
+    (r / "new_joints/M000004.npy").unlink()                                             # absent: fine
+    rep = scan(r, n_joints=22, joints_tol=0.01)
+    reasons = {x["name"]: x["reason"] for x in rep.rejected}
+    assert set(reasons) == {"000002", "000003", "000004"}
+    assert "new_joints/000002.npy: differs from recover_from_ric" in reasons["000002"]
+    assert "(80, 22, 3)" in reasons["000003"] and "NaN or Inf" in reasons["000004"]
+    assert all("new_joints" in x["file"] for x in rep.rejected)
+    assert not scan(fixture_root.parent / "HumanML3D", n_joints=None).rejected   # check off
+
+
+def test_clamped_timed_caption_and_empty_split_are_reported(fixture_root):
+    r = fixture_root
+    (r / "texts/000002.txt").write_text(GOOD + "he walks.#he/PRON walk/VERB#2.0#9.0\n")
+    (r / "val.txt").write_text("")
+    rep = scan(r)
+    assert [(c["line"], "cut at 80" in c["reason"]) for c in rep.clamped] == [(2, True)]
+    assert "000002#40-80" in {c["id"] for c in rep.clips}
+    assert any("val split is empty" in w for w in rep.warnings)
 
 
 def _index(root, clips):

@@ -3,6 +3,7 @@ shared by the index, the part-text and embedding caches and stores."""
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 
 import numpy as np
@@ -85,3 +86,31 @@ def test_select_in_asks_in_chunks(tmp_path):
         assert sorted(k for (k,) in rows) == list(range(0, 25, 2))
     with pytest.raises(sqlite3.DatabaseError, match="not a usable number table"):
         connect(tmp_path, ["SELECT 1"], "number table")         # a folder is no database
+
+
+def test_stale_temps_of_a_dead_process_are_removed(tmp_path):
+    """A killed writer's temp folder/file (its pid gone) goes when the output is next
+    written; a live process's temp stays."""
+    import subprocess
+    import sys
+
+    from party.io import atomic_dir, write_text
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale_dir = tmp_path / f".prepared.{dead}.abc123.tmp"
+    (stale_dir / "synthetic").mkdir(parents=True)
+    stale_file = tmp_path / f".index.json.{dead}.x1.json.tmp"
+    stale_file.write_text("half")
+    stale_gif = tmp_path / f".a.gif.{dead}.x2.tmp.gif"
+    stale_gif.write_text("half")
+    legacy = tmp_path / ".prepared.q9z8.tmp"           # written before temps carried a pid
+    legacy.mkdir()
+    live = tmp_path / f".prepared.{os.getpid()}.zzz.tmp"
+    live.mkdir()
+    with atomic_dir(tmp_path / "prepared") as d:
+        (d / "x").write_text("1")
+    write_text(tmp_path / "index.json", "{}")
+    write_text(tmp_path / "a.gif", "gif")
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted(["prepared", "index.json", "a.gif", live.name]), left

@@ -170,6 +170,7 @@ class Dataset:
     min_len: int = MISSING
     max_len: int = MISSING
     strict: bool = MISSING
+    joints_tol: float = MISSING
     feet_thre: float = MISSING
     parts: PartTables = _group(PartTables)
     synthetic: Optional[Synthetic] = None   # synthetic

@@ -110,6 +110,24 @@ def test_tokens_decode_to_what_validation_saw(trained):
             assert torch.equal(rec, lit.val_outputs[k][1]), k                # bit for bit
 
 
+def test_extract_tokens_checks_every_input_before_writing(trained, tmp_path):
+    """Only the holistic tokenizer trained: the stage fails on arms before writing anything,
+    and a previous token folder stays as it was."""
+    cfg, tmp, _ = trained
+    cfg = cfg.copy()
+    only = tmp_path / "tokenizers"
+    shutil.copytree(tmp / "tokenizers" / "holistic", only / "holistic")
+    cfg.vqvae.out_dir, cfg.vqvae.tokens_dir = str(only), str(tmp_path / "tokens")
+    with pytest.raises(FileNotFoundError, match=r"tokenizers/arms: tokenizer not found.*party train_vqvae"):
+        extract_tokens.run(cfg)
+    assert not (tmp_path / "tokens").exists() and not list(tmp_path.glob(".tokens*"))
+    (tmp_path / "tokens").mkdir()
+    (tmp_path / "tokens" / "previous.txt").write_text("kept")
+    with pytest.raises(FileNotFoundError):
+        extract_tokens.run(cfg)
+    assert [p.name for p in (tmp_path / "tokens").iterdir()] == ["previous.txt"]
+
+
 def test_validation_metrics_ignore_filler_rows(trained):
     """Short batches are padded to a fixed shape with copies of their first sequence;
     those copies must not count: the metrics cannot depend on the batch size."""

@@ -33,6 +33,7 @@ class Caption:
     tokens: list[str]
     start: float
     end: float
+    line: int = 0
 
 
 @dataclass
@@ -40,6 +41,8 @@ class ScanReport:
     clips: list[dict] = field(default_factory=list)
     rejected: list[dict] = field(default_factory=list)      # whole motions or timed clips
     bad_lines: list[dict] = field(default_factory=list)     # caption lines skipped
+    clamped: list[dict] = field(default_factory=list)       # timed captions cut at the clip's end
+    warnings: list[str] = field(default_factory=list)       # e.g. an empty val/test split
 
     def reject(self, name: str, file: Path | str, reason: str) -> None:
         self.rejected.append({"name": name, "file": str(file), "reason": reason})
@@ -66,7 +69,7 @@ def parse_caption_line(line: str, file: Path | str, lineno: int) -> Caption:
     e = 0.0 if math.isnan(e) else e
     if s < 0 or e < 0 or (e != 0.0 and e <= s):
         raise DatasetError(f"{where}: bad time span {s}..{e}")
-    return Caption(caption, toks, s, e)
+    return Caption(caption, toks, s, e, lineno)
 
 
 def read_captions(path: Path, report: ScanReport | None = None) -> list[Caption]:
@@ -93,14 +96,22 @@ def read_split(root: Path, split: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
-def load_features(path: Path, feat_dim: int) -> np.ndarray:
-    """Load a (T, feat_dim) feature file; DatasetError naming the file on any problem."""
+def _load_npy(path: Path) -> np.ndarray:
     if not path.exists():
         raise DatasetError(f"{path}: file missing")
     try:
-        arr = np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False)
+    except ValueError as e:   # numpy says "pickled data" for any file without the .npy magic
+        if "pickle" not in str(e):
+            raise DatasetError(f"{path}: unreadable .npy ({e})") from e
+        raise DatasetError(f"{path}: not a valid .npy file (no NumPy header, or an object array)") from None
     except Exception as e:  # noqa: BLE001 - any read failure is reported with the file
         raise DatasetError(f"{path}: unreadable .npy ({type(e).__name__}: {e})") from e
+
+
+def load_features(path: Path, feat_dim: int) -> np.ndarray:
+    """Load a (T, feat_dim) feature file; DatasetError naming the file on any problem."""
+    arr = _load_npy(path)
     if arr.ndim != 2 or arr.shape[1] != feat_dim:
         raise DatasetError(f"{path}: expected shape (T, {feat_dim}), got {arr.shape}")
     if not np.isfinite(arr).all():
@@ -114,10 +125,7 @@ def load_mean_std(root: Path, feat_dim: int) -> tuple[np.ndarray, np.ndarray]:
         path = root / fname
         if not path.exists():
             raise DatasetError(f"{path}: missing (normalisation statistics)")
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except Exception as e:  # noqa: BLE001
-            raise DatasetError(f"{path}: unreadable .npy ({e})") from e
+        arr = _load_npy(path)
         if arr.shape != (feat_dim,):
             raise DatasetError(f"{path}: expected shape ({feat_dim},), got {arr.shape}")
         if not np.isfinite(arr).all():
@@ -129,11 +137,17 @@ def load_mean_std(root: Path, feat_dim: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scan_dataset(root: str | Path, *, feat_dim: int, fps: float, min_len: int, max_len: int,
-                 splits=SPLITS, strict: bool = False, progress: bool = True) -> ScanReport:
+                 splits=SPLITS, strict: bool = False, progress: bool = True,
+                 n_joints: int | None = None, joints_tol: float | None = None) -> ScanReport:
     """Validate every motion named by the split files and build the clip list.
 
     ``max_len`` is the longest kept clip (HumanML3D keeps 40 <= T < 200 and crops
     to 196 in the loaders); longer whole clips are rejected, as in the reference loader.
+    With ``strict`` the first problem of any kind (a bad file, a malformed caption line, a
+    timed caption too short or outside its clip, a motion listed in two splits) raises,
+    naming the file and line. With ``n_joints`` and ``joints_tol``, ``new_joints/<name>.npy``
+    is checked when present: shape (T, n_joints, 3), finite, and within ``joints_tol`` of
+    ``recover_from_ric(features)`` (it is never read for training).
     """
     root = Path(root)
     if not root.is_dir():
@@ -142,26 +156,40 @@ def scan_dataset(root: str | Path, *, feat_dim: int, fps: float, min_len: int, m
         if not (root / sub).is_dir():
             raise DatasetError(f"{root / sub}: folder missing; is {root} in HumanML3D layout?")
     report = ScanReport()
+
+    def problem(name: str, file: Path, reason: str) -> None:
+        if strict:
+            raise DatasetError(f"{reason} (dataset.strict=true)")
+        report.reject(name, file, reason)
+
     todo = [(split, name) for split in splits for name in read_split(root, split)]
+    for split in splits:
+        if split != "train" and not any(s == split for s, _ in todo):
+            report.warnings.append(f"{root / f'{split}.txt'}: the {split} split is empty")
     seen: dict[str, str] = {}
     for split, name in tqdm(todo, desc=f"scan {root.name}", disable=not progress, unit="motion"):
         if name in seen:
-            report.reject(name, root / f"{split}.txt", f"also listed in {seen[name]}.txt")
+            problem(name, root / f"{split}.txt", f"{root / f'{split}.txt'}: {name} is also listed in "
+                    f"{seen[name]}.txt (kept there)")
             continue
         seen[name] = split
         vec_path = root / "new_joint_vecs" / f"{name}.npy"
         txt_path = root / "texts" / f"{name}.txt"
         try:
             feats = load_features(vec_path, feat_dim)
+            if n_joints is not None and joints_tol is not None:
+                check_joints(root / "new_joints" / f"{name}.npy", feats, n_joints, joints_tol)
             if not txt_path.exists():
                 raise DatasetError(f"{txt_path}: file missing")
-            caps = read_captions(txt_path, report)
+            caps = read_captions(txt_path, None if strict else report)
             if not caps:
                 raise DatasetError(f"{txt_path}: no valid caption line")
         except (DatasetError, UnicodeDecodeError, OSError) as e:
             if strict:
                 raise DatasetError(f"{e} (listed in {split}.txt; dataset.strict=true)") from e
-            report.reject(name, vec_path if "new_joint_vecs" in str(e) else txt_path, str(e))
+            file = txt_path if str(txt_path) in str(e) else (
+                root / "new_joints" / f"{name}.npy" if "new_joints" in str(e) else vec_path)
+            report.reject(name, file, str(e))
             continue
         n = len(feats)
         whole = [c for c in caps if c.start == 0.0 and c.end == 0.0]
@@ -169,22 +197,49 @@ def scan_dataset(root: str | Path, *, feat_dim: int, fps: float, min_len: int, m
             if min_len <= n <= max_len:
                 report.clips.append(_clip(name, name, 0, n, split, whole))
             else:
-                msg = f"{vec_path}: length {n} outside [{min_len}, {max_len}]"
-                if strict:
-                    raise DatasetError(msg + " (dataset.strict=true)")
-                report.reject(name, vec_path, msg)
+                problem(name, vec_path, f"{vec_path}: length {n} outside [{min_len}, {max_len}]")
         timed: dict[tuple[int, int], list[Caption]] = {}
         for c in caps:
             if c.start == 0.0 and c.end == 0.0:
                 continue
-            timed.setdefault((int(c.start * fps), min(int(c.end * fps), n)), []).append(c)
+            s, e = int(c.start * fps), int(c.end * fps)
+            where = f"{txt_path}:{c.line}"
+            if s >= n:
+                problem(f"{name}#{s}-{e}", txt_path, f"{where}: timed caption starts at frame {s}, "
+                        f"after the clip ends ({n} frames)")
+                continue
+            if e > n:
+                report.clamped.append({"file": str(txt_path), "line": c.line,
+                                       "reason": f"end frame {e} past the clip ({n} frames); cut at {n}"})
+                e = n
+            timed.setdefault((s, e), []).append(c)
         for (s, e), group in timed.items():
             cid = f"{name}#{s}-{e}"
             if not min_len <= e - s <= max_len:
-                report.reject(cid, txt_path, f"timed caption spans {e - s} frames, outside [{min_len}, {max_len}]")
+                problem(cid, txt_path, f"{txt_path}:{group[0].line}: timed caption spans {e - s} frames, "
+                        f"outside [{min_len}, {max_len}]")
                 continue
             report.clips.append(_clip(cid, name, s, e, split, group))
     return report
+
+
+def check_joints(path: Path, feats: np.ndarray, n_joints: int, tol: float) -> None:
+    """``new_joints/<name>.npy``, when present, is (T, n_joints, 3), finite and equal to
+    ``recover_from_ric(feats)`` within ``tol`` (dataset units); DatasetError naming it if not."""
+    if not path.exists():
+        return
+    arr = _load_npy(path)
+    if arr.shape != (len(feats), n_joints, 3):
+        raise DatasetError(f"{path}: expected shape ({len(feats)}, {n_joints}, 3) to match "
+                           f"new_joint_vecs, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise DatasetError(f"{path}: contains NaN or Inf")
+    from party.motion.features import recover_from_ric_np
+
+    err = float(np.abs(recover_from_ric_np(feats, n_joints) - arr).max())
+    if err > tol:
+        raise DatasetError(f"{path}: differs from recover_from_ric(new_joint_vecs) by up to {err:.4g} "
+                           f"(> dataset.joints_tol {tol}); the two files do not describe the same motion")
 
 
 def _clip(cid: str, motion: str, start: int, end: int, split: str, caps: list[Caption]) -> dict:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from party.io import atomic_dir
 from party.stage import stage
 from party.data.context import load_stream_data
 from party.tokenizers.data import BucketDataset
@@ -90,26 +91,31 @@ def tokenize_stream(tok: Tokenizer, data, batch_size: int, progress: bool = True
 
 @stage("extract_tokens")
 def run(cfg, run_) -> dict:
+    """Checks every stream's tokenizer against the prepared data first, then writes all the
+    stores into one temporary folder swapped in at the end: a missing or mismatched
+    tokenizer, or a crash, leaves the previous ``tokens_dir`` whole and nothing half-written."""
     vq = cfg.vqvae
-    out_root = Path(vq.tokens_dir)
-    summary = {}
+    inputs = []
     for stream in vq.streams:
-        t0 = time.time()
         path = Path(vq.out_dir) / stream
         tok = load_tokenizer(path)
         if tok.meta["stream"] != stream:
             raise ValueError(f"{path}: holds the {tok.meta['stream']!r} tokenizer, expected {stream!r}")
         data = load_stream_data(cfg, stream)
         _check(tok, data, path)
-        entries, codes, keys = tokenize_stream(tok, data, vq.eval.batch_size,
-                                               cfg.progress)
-        meta = {"stream": stream, "window": tok.window, "tail": tok.tail,
-                "codebook_size": tok.codebook_size, "levels": tok.levels, "family": tok.family,
-                "dataset": data.index.dataset, "tokenizer": str(path / "model.pt")}
-        meta = write_token_store(out_root / stream, zip(entries, codes), keys, meta)
-        used = len(np.unique(np.concatenate(codes))) if codes else 0
-        summary[stream] = {"entries": meta["n_entries"], "keys": len(keys), "codes": meta["n_codes_total"],
-                           "codes_used": used, "seconds": round(time.time() - t0, 2)}
-        run_.log_metrics({f"{stream}.{k}": v for k, v in summary[stream].items()})
-        print(f"extract_tokens[{stream}]: {summary[stream]}")
+        inputs.append((stream, path, tok, data))
+    summary = {}
+    with atomic_dir(vq.tokens_dir) as out_root:
+        for stream, path, tok, data in inputs:
+            t0 = time.time()
+            entries, codes, keys = tokenize_stream(tok, data, vq.eval.batch_size, cfg.progress)
+            meta = {"stream": stream, "window": tok.window, "tail": tok.tail,
+                    "codebook_size": tok.codebook_size, "levels": tok.levels, "family": tok.family,
+                    "dataset": data.index.dataset, "tokenizer": str(path / "model.pt")}
+            meta = write_token_store(out_root / stream, zip(entries, codes), keys, meta)
+            used = len(np.unique(np.concatenate(codes))) if codes else 0
+            summary[stream] = {"entries": meta["n_entries"], "keys": len(keys), "codes": meta["n_codes_total"],
+                               "codes_used": used, "seconds": round(time.time() - t0, 2)}
+            run_.log_metrics({f"{stream}.{k}": v for k, v in summary[stream].items()})
+            print(f"extract_tokens[{stream}]: {summary[stream]}")
     return summary

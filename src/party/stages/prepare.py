@@ -28,7 +28,10 @@ def build_index(cfg: DictConfig, out_dir: Path, data_root: Path, root_in_index: 
     ds = cfg.dataset
     t0 = time.time()
     report = scan_dataset(data_root, feat_dim=ds.feat_dim, fps=ds.fps, min_len=ds.min_len,
-                          max_len=ds.max_len, strict=ds.strict, progress=cfg.progress)
+                          max_len=ds.max_len, strict=ds.strict, progress=cfg.progress,
+                          n_joints=ds.n_joints, joints_tol=ds.joints_tol)
+    for w in report.warnings:
+        log.warning(w)
     load_mean_std(data_root, ds.feat_dim)      # fail now, naming the file, if stats are bad
     if not report.clips:
         raise DatasetError(f"{data_root}: no valid clip; first problems: {report.rejected[:3]}")
@@ -48,8 +51,24 @@ def build_index(cfg: DictConfig, out_dir: Path, data_root: Path, root_in_index: 
                        "mirrors": len(v["mirrors"])} for k, v in sorted(counts.items())},
         "n_rejected": len(report.rejected), "rejected": report.rejected,
         "n_bad_caption_lines": len(report.bad_lines), "bad_caption_lines": report.bad_lines,
+        "n_clamped_captions": len(report.clamped), "clamped_captions": report.clamped,
+        "warnings": report.warnings,
         "scan_seconds": round(time.time() - t0, 2),
     }
+
+
+def summary(manifest: dict, path: Path, first: int = 3) -> str:
+    """The console summary: counts, and the first few problems with a pointer to the manifest."""
+    lines = [f"prepare: {manifest['counts']} rejected={manifest['n_rejected']} "
+             f"bad_caption_lines={manifest['n_bad_caption_lines']} "
+             f"clamped_captions={manifest['n_clamped_captions']} in {manifest['seconds']}s"]
+    for what, key in (("rejected", "rejected"), ("bad caption line", "bad_caption_lines"),
+                      ("clamped", "clamped_captions")):
+        lines += [f"  {what}: {x['reason']}" for x in manifest[key][:first]]
+    lines += [f"  warning: {w}" for w in manifest["warnings"]]
+    if len(lines) > 1:
+        lines.append(f"  all of them, with file and reason: {path}")
+    return "\n".join(lines)
 
 
 @stage("prepare")
@@ -75,7 +94,7 @@ def run(cfg: DictConfig, run_) -> dict:
         write_json(tmp / "manifest.json", manifest)
     log.info("prepared %s: %s, %d rejected, %.1fs", cfg.dataset.name, manifest["counts"],
              manifest["n_rejected"], manifest["seconds"])
-    print(f"prepare: {manifest['counts']} rejected={manifest['n_rejected']} in {manifest['seconds']}s")
+    print(summary(manifest, out / "manifest.json"))
     run_.log_metrics({f"{split}.{k}": v for split, c in manifest["counts"].items() for k, v in c.items()}
                      | {"rejected": manifest["n_rejected"], "seconds": manifest["seconds"]})
     run_.log_file(out / "manifest.json")
