@@ -60,7 +60,7 @@ def test_part_texts_are_checked_for_the_configured_parts(tmp_path):
         load_part_texts(path)
 
 
-@pytest.mark.parametrize("cls, message", [(PartTextCache, r"not a usable part-text cache \(.*\)$"),
+@pytest.mark.parametrize("cls, message", [(PartTextCache, r"not a usable part-text cache \(.*\); delete it to rebuild \(every caption"),
                                           (EmbeddingCache, r"not a usable embedding cache .*; delete it to rebuild")])
 def test_caches_share_one_sqlite_setup(tmp_path, cls, message):
     path = tmp_path / "sub" / "cache.sqlite"
@@ -72,6 +72,24 @@ def test_caches_share_one_sqlite_setup(tmp_path, cls, message):
     bad.write_bytes(b"this is not a database" * 100)
     with pytest.raises(sqlite3.DatabaseError, match=message):
         cls(bad)
+
+
+def test_damage_inside_a_cache_names_the_file_and_the_way_out(tmp_path):
+    """Corruption that opening does not see (a page in the middle) surfaces on the first query
+    as an error naming the file and how to recover, not a bare 'malformed'."""
+    path = tmp_path / "emb.sqlite"
+    keys = [f"{i:040d}" for i in range(3000)]
+    with EmbeddingCache(path) as cache:
+        cache.put_many("enc", keys, np.random.default_rng(0).normal(size=(3000, 64)))
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2 // 4096 * 4096
+    data[mid:mid + 4096] = b"\xff" * 4096
+    path.write_bytes(bytes(data))
+    with pytest.raises(sqlite3.DatabaseError, match=rf"{path}: the embedding cache is damaged "
+                       r"\(.*malformed.*\).*\.recover.*delete it to rebuild \(its texts"):
+        with EmbeddingCache(path) as cache:
+            cache.get_many("enc", keys)
+            cache.count()
 
 
 def test_select_in_asks_in_chunks(tmp_path):

@@ -271,3 +271,57 @@ def test_runs_do_not_export_the_store_to_later_runs(store, tmp_path):
     with tracking.start_run(other, "evaluate", tags={"purpose": "second-store"}):
         pass
     assert (tmp_path / "other" / "mlflow.db").exists()
+
+
+_HOLDER = textwrap.dedent("""
+    import os, signal, sys, time
+    from omegaconf import OmegaConf
+    from party import tracking
+    cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "orphans", "dir": sys.argv[1],
+                                         "uri": None, "parent_run_id": None, "log_system_metrics": False,
+                                         "log_model": False}})
+    with tracking.terminate_on_sigterm(), tracking.start_run(cfg, sys.argv[2]) as run:
+        print(run.info.run_id, flush=True)
+        if sys.argv[3] == "kill9":
+            os.kill(os.getpid(), signal.SIGKILL)
+        time.sleep(120)
+""")
+
+
+def _holder(d, stage, how):
+    env = {k: v for k, v in os.environ.items() if k not in ("MLFLOW_TRACKING_URI", "DVC_ROOT")}
+    p = subprocess.Popen([sys.executable, "-c", _HOLDER, str(d), stage, how], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return p, p.stdout.readline().strip()
+
+
+def test_runs_of_killed_processes_are_not_left_running(tmp_path):
+    """kill -9 leaves a run RUNNING; the next start of the same stage marks it KILLED, and
+    leaves a live process's run and another stage's run alone. SIGTERM ends the run KILLED
+    at once, with the signal as the error."""
+    from mlflow.tracking import MlflowClient
+
+    d = tmp_path / "mlruns"
+    dead, dead_id = _holder(d, "train_vqvae", "kill9")
+    dead.wait(60)
+    other, other_id = _holder(d, "embed_texts", "kill9")
+    other.wait(60)
+    client = MlflowClient(f"sqlite:///{d}/mlflow.db")
+    assert client.get_run(dead_id).info.status == "RUNNING"            # what kill -9 leaves
+    live, live_id = _holder(d, "train_vqvae", "sleep")                 # closes dead_id itself
+    client.set_terminated(dead_id, "RUNNING")                          # so that this start does
+    try:
+        cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "orphans", "dir": str(d),
+                                             "uri": None, "parent_run_id": None,
+                                             "log_system_metrics": False, "log_model": False}})
+        with tracking.start_run(cfg, "train_vqvae"):
+            pass
+        assert client.get_run(dead_id).info.status == "KILLED"
+        assert "ended without closing" in client.get_run(dead_id).data.tags["party.error"]
+        assert client.get_run(live_id).info.status == "RUNNING"        # its process is alive
+        assert client.get_run(other_id).info.status == "RUNNING"       # another stage's: its next start
+        live.terminate()                                                # SIGTERM
+        live.wait(60)
+        assert client.get_run(live_id).info.status == "KILLED"
+    finally:
+        live.kill()

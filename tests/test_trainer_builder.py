@@ -29,8 +29,15 @@ def test_config_key_and_resume_checkpoint(tmp_path):
     assert config_key({"lr": 1}, {"index": "a"}) == config_key({"lr": 1.0}, {"index": "a"})   # 1 and 1.0 alike
     assert config_key({"lr": 1}, {"index": "a"}) != config_key({"lr": 1}, {"index": "b"})     # data identity counts
     assert resume_checkpoint(tmp_path, True) is None
-    (tmp_path / "last.ckpt").write_bytes(b"x")
+    torch.save({"w": torch.arange(5000.0)}, tmp_path / "last.ckpt")
     assert resume_checkpoint(tmp_path, True) == tmp_path / "last.ckpt" and resume_checkpoint(tmp_path, False) is None
+    data = (tmp_path / "last.ckpt").read_bytes()
+    for damaged in (data[: len(data) // 2], data[:2000] + b"\0" * 1000 + data[3000:]):   # truncated, overwritten
+        (tmp_path / "last.ckpt").write_bytes(damaged)
+        with pytest.raises(ValueError, match=r"last.ckpt: the rolling checkpoint .* truncated or damaged .*"
+                           r"delete it .* or set vqvae.train.resume=false"):
+            resume_checkpoint(tmp_path, True, "vqvae.train.resume")
+        assert resume_checkpoint(tmp_path, False) is None                      # resume off: not read
     assert count_params(torch.nn.Linear(3, 2)) == 8
 
 

@@ -14,8 +14,9 @@
 2. seeds Python, NumPy and torch from ``seed``;
 3. opens the stage's MLflow run *before* the work (``party.tracking.start_run``; a no-op
    run when ``tracking.enabled`` is false or on a non-zero DDP rank);
-4. runs the body; if it raises, the run ends FAILED (KILLED on Ctrl-C) carrying the error
-   as the ``party.error`` tag and the traceback as ``error.txt``;
+4. runs the body; if it raises, the run ends FAILED (KILLED on Ctrl-C or SIGTERM) carrying
+   the error as the ``party.error`` tag and the traceback as ``error.txt``; a run this stage
+   left RUNNING when its process was killed (``kill -9``) is marked KILLED at the next start;
 5. logs ``stage/seconds`` and prints one summary line;
 6. returns the body's metrics dict.
 
@@ -61,7 +62,8 @@ def stage(name: str, run_name: str | Callable | None = None,
             seed_all(int(cfg.seed))
             rname = _value(run_name, cfg) or name
             t0 = time.time()
-            with tracking.start_run(cfg, name, run_name=rname, tags=_value(tags, cfg)) as run_:
+            with tracking.terminate_on_sigterm(), \
+                    tracking.start_run(cfg, name, run_name=rname, tags=_value(tags, cfg)) as run_:
                 try:
                     out = body(cfg, run_)
                 except BaseException as e:

@@ -293,6 +293,81 @@ def _experiment_id(name: str, uri: str) -> str:
     return exp.experiment_id
 
 
+def process_key(pid: int) -> str | None:
+    """``"<pid>:<start time>"`` of a live process (Linux ``/proc``; ``"<pid>"`` elsewhere), or
+    None when it is gone: a reused pid has another start time, so it is not mistaken for it."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        pass
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return str(pid)
+    return f"{pid}:{stat.rsplit(')', 1)[1].split()[19]}"     # field 22: start time in ticks
+
+
+def close_orphans(client, experiment_id: str, stage: str) -> list[str]:
+    """Mark KILLED the RUNNING runs of ``stage`` in this store whose process, on this host,
+    is gone (``kill -9``, a crash the process could not report): the next start of a stage
+    cleans up after it, so the UI and ``search_runs`` never show a dead run as running.
+    Runs of other hosts (multi-node), of live processes, or without the ``party.process``
+    tag (older versions) are left alone. Returns the run ids it closed."""
+    import socket
+
+    host = socket.gethostname()
+    runs = client.search_runs([experiment_id], max_results=1000, filter_string=(
+        f"attributes.status = 'RUNNING' and tags.`party.stage` = '{stage}' "
+        f"and tags.`party.host` = '{host}'"))
+    closed = []
+    for r in runs:
+        key = r.data.tags.get("party.process", "")
+        pid = key.split(":", 1)[0]
+        if not pid.isdigit() or process_key(int(pid)) == key:
+            continue
+        client.set_tag(r.info.run_id, "party.error",
+                       f"process {pid} on {host} ended without closing this run (killed?); "
+                       f"marked KILLED when {stage} next started")
+        client.set_terminated(r.info.run_id, "KILLED")
+        closed.append(r.info.run_id)
+    if closed:
+        log.warning("marked %d orphaned %s run(s) KILLED: %s", len(closed), stage, ", ".join(closed))
+    return closed
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM (``kill``, ``scancel``, a timeout) during a stage,
+    so the run ends KILLED with the error recorded, as on Ctrl-C."""
+
+
+_SIGNALLED: list[int] = []
+
+
+@contextlib.contextmanager
+def terminate_on_sigterm() -> Iterator[None]:
+    """Turn SIGTERM into ``Terminated`` for the duration (main thread only; the previous
+    handler is restored). Lightning composes its own SIGTERM handler with this one during
+    ``fit``; its graceful shutdown then exits, and ``start_run`` still records KILLED."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        _SIGNALLED.append(signum)
+        raise Terminated(f"received signal {signum} (SIGTERM)")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 @contextlib.contextmanager
 def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, Any] | None = None,
               parent_run_id: str | None = None, nested: bool = False) -> Iterator[Any]:
@@ -302,7 +377,8 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     name/baseline when run by ``dvc exp``, ``mlflow.parentRunId`` for nested runs (an
     active run with ``nested=True``, or ``parent_run_id`` / ``tracking.parent_run_id``).
     Logs the flattened resolved config as params and the full config as ``config.yaml``.
-    The run ends FINISHED, or FAILED (KILLED on Ctrl-C) when the body raises.
+    The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM) when the body raises.
+    First marks KILLED this stage's runs left RUNNING by a dead process (``close_orphans``).
     """
     t = _tcfg(cfg)
     name = run_name or stage
@@ -317,7 +393,11 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     exp_id = _experiment_id(t["experiment"], uri)
     mlflow.set_experiment(experiment_id=exp_id)
 
-    all_tags = {"party.stage": stage, **_git_state()}
+    import socket
+
+    close_orphans(mlflow.MlflowClient(uri), exp_id, stage)
+    all_tags = {"party.stage": stage, **_git_state(), "party.host": socket.gethostname(),
+                "party.process": process_key(os.getpid())}
     for env, tag in (("DVC_EXP_NAME", "party.dvc_exp_name"),
                      ("DVC_EXP_BASELINE_REV", "party.dvc_baseline_rev")):
         if os.environ.get(env):
@@ -337,11 +417,10 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
         run.log_params(flatten_config(cfg))
         run.log_text(_config_yaml(cfg), "config.yaml")
         yield run
-    except KeyboardInterrupt:
-        mlflow.end_run("KILLED")
-        raise
-    except BaseException:
-        mlflow.end_run("FAILED")
+    except BaseException as e:
+        killed = isinstance(e, KeyboardInterrupt) or bool(_SIGNALLED)
+        _SIGNALLED.clear()
+        mlflow.end_run("KILLED" if killed else "FAILED")
         raise
     else:
         mlflow.end_run("FINISHED")

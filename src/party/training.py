@@ -159,7 +159,23 @@ def resume_dir(root: str | os.PathLike, name: str, key: str) -> Path:
     return Path(root) / name / key
 
 
-def resume_checkpoint(folder: Path, enabled: bool) -> Path | None:
-    """``folder/last.ckpt`` when resuming is on and it exists, else None."""
+def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.resume") -> Path | None:
+    """``folder/last.ckpt`` when resuming is on and it exists, else None.
+
+    The file is checked first (a torch checkpoint is a zip: its directory and every member's
+    CRC): a truncated or damaged one raises ValueError naming the file and the two ways out
+    (delete it, or ``<key>=false``), instead of torch's bare ``PytorchStreamReader failed``."""
+    import zipfile
+
     ckpt = Path(folder) / "last.ckpt"
-    return ckpt if enabled and ckpt.exists() else None
+    if not (enabled and ckpt.exists()):
+        return None
+    try:
+        with zipfile.ZipFile(ckpt) as z:
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError) as e:
+        bad = f"{type(e).__name__}: {e}"
+    if bad is not None:
+        raise ValueError(f"{ckpt}: the rolling checkpoint to resume from is truncated or damaged "
+                         f"({bad}); delete it to start this training over, or set {key}=false")
+    return ckpt

@@ -75,3 +75,35 @@ def test_store_refuses_inconsistent_files(tmp_path):
     np.save(d / "embeddings.npy", np.ones((3, 4), np.float32))
     with pytest.raises(ValueError, match="does not match keys.json"):
         EmbeddingStore.open(d)
+
+
+def test_a_nan_in_the_cache_is_never_copied_into_the_store(tmp_path):
+    """A NaN vector in the content cache is treated as missing (embedded again); the store
+    refuses to write or open non-finite embeddings."""
+    from party.text.store import EmbeddingCache
+
+    write_index(tmp_path, CAPS)
+    cfg = stage_cfg(tmp_path, "rules", "minilm")
+    cache_part_texts.run(cfg)
+    stats = embed_stage.run(cfg)
+    with EmbeddingCache(cfg.text.cache_path) as cache:
+        key = text_key(CAPS[0][0])
+        good = cache.get_many(stats["encoder_id"], [key])[key].copy()
+        with cache.db:                       # damage one cached vector in place
+            cache.db.execute("UPDATE embeddings SET vec=? WHERE sha1=?",
+                             (np.full(384, np.nan, np.float32).tobytes(), key))
+        with pytest.raises(ValueError, match=r"NaN or Inf.*not cached"):
+            cache.put_many(stats["encoder_id"], [key], np.full((1, 384), np.nan))
+    stats2 = embed_stage.run(cfg)
+    assert stats2["computed"] == 1
+    store = EmbeddingStore.open(cfg.text.embeddings_dir)
+    assert np.allclose(store.get([CAPS[0][0]])[0], good, atol=1e-6)
+    folder = tmp_path / "embeddings" / stats["encoder_id"]
+    vecs = np.load(folder / "embeddings.npy")
+    vecs[2, 5] = np.inf
+    np.save(folder / "embeddings.npy", vecs)
+    with pytest.raises(ValueError, match=r"embeddings.npy: 1 embedding\(s\) contain NaN or Inf"):
+        EmbeddingStore.open(cfg.text.embeddings_dir)
+    with pytest.raises(ValueError, match="NaN or Inf.*nothing was written"):
+        EmbeddingStore.write(tmp_path / "other", ["a"], np.full((1, 3), np.nan), {"encoder_id": "x"})
+    assert not (tmp_path / "other").exists()

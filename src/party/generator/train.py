@@ -176,7 +176,7 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                       "seed": seed}, _identity(cfg))
     rdir = resume_dir(g.resume_dir, method, key)
     ckpt = rdir / "last.ckpt"
-    resume = resume_checkpoint(rdir, t.resume)
+    resume = resume_checkpoint(rdir, t.resume, "generator.train.resume")
     counts = model.param_counts()
     run.set_tags({"party.method": method, "party.generator_kind": model.spec.kind, "party.resume_key": key,
                   "party.resumed": str(resume is not None).lower()})

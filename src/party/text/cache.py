@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 class PartTextCache(SQLiteCache):
     kind = "part-text cache"
+    hint = " (every caption is then asked again: the answers cost LLM calls)"
     schema = (
         "CREATE TABLE IF NOT EXISTS part_texts (backend TEXT NOT NULL, model TEXT NOT NULL, "
         "prompt_version TEXT NOT NULL, caption TEXT NOT NULL, parts TEXT NOT NULL, "

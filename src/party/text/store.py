@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from party.io import atomic_dir, read_json, require, write_json
 from party.sqlite import SQLiteCache, select_in
+
+log = logging.getLogger(__name__)
 
 
 def text_key(text: str) -> str:
@@ -71,6 +74,7 @@ class EmbeddingStore:
                              f"({len(keys['sha1'])} keys); rerun `party embed_texts`")
         if int(meta["dim"]) != vectors.shape[1]:
             raise ValueError(f"{path}: meta.json dim {meta['dim']} != embeddings width {vectors.shape[1]}")
+        _check_finite(vectors, keys["text"], f"{path / 'embeddings.npy'}", "rerun `party embed_texts`")
         return cls(path, vectors, keys["sha1"], keys["text"], meta)
 
     def get(self, texts: list[str]) -> np.ndarray:
@@ -92,6 +96,7 @@ class EmbeddingStore:
         vectors = np.ascontiguousarray(vectors, dtype=np.float32)
         if vectors.shape[0] != len(texts):
             raise ValueError(f"{len(texts)} texts but {vectors.shape[0]} vectors")
+        _check_finite(vectors, texts, f"{path}", "the encoder produced them; nothing was written")
         path = Path(path)
         meta = {**meta, "dim": int(vectors.shape[1]), "n": len(texts)}
         with atomic_dir(path) as tmp:
@@ -102,11 +107,18 @@ class EmbeddingStore:
         return path
 
 
+def _check_finite(vectors: np.ndarray, texts: list[str], where: str, hint: str) -> None:
+    bad = np.nonzero(~np.isfinite(vectors).all(axis=1))[0]
+    if len(bad):
+        raise ValueError(f"{where}: {len(bad)} embedding(s) contain NaN or Inf, e.g. of "
+                         f"{texts[int(bad[0])]!r}; {hint}")
+
+
 class EmbeddingCache(SQLiteCache):
     """Persistent (encoder_id, sha1) -> vector cache in SQLite (WAL, one commit per batch)."""
 
     kind = "embedding cache"
-    hint = "; delete it to rebuild"
+    hint = " (its texts are embedded again)"
     schema = ("CREATE TABLE IF NOT EXISTS embeddings (encoder_id TEXT NOT NULL, "
               "sha1 TEXT NOT NULL, dim INTEGER NOT NULL, vec BLOB NOT NULL, "
               "PRIMARY KEY (encoder_id, sha1))",)
@@ -116,12 +128,16 @@ class EmbeddingCache(SQLiteCache):
         q = "SELECT sha1, dim, vec FROM embeddings WHERE encoder_id=? AND sha1 IN ({})"
         for sha, d, blob in select_in(self.db, q, [encoder_id], keys, 500):   # SQLite host-parameter limit is 999+
             v = np.frombuffer(blob, dtype=np.float32)
-            if v.size == d and (dim is None or d == dim):   # anything else is treated as missing
-                found[sha] = v
+            if v.size == d and (dim is None or d == dim) and np.isfinite(v).all():
+                found[sha] = v                               # anything else is treated as missing
+            elif not np.isfinite(v).all():
+                log.warning("%s: the cached vector %s of %s is not finite; embedding it again",
+                            self.path, sha, encoder_id)
         return found
 
     def put_many(self, encoder_id: str, keys: list[str], vectors: np.ndarray) -> None:
         vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+        _check_finite(vectors, keys, f"{self.path}", f"encoder {encoder_id} produced them; not cached")
         with self.db:
             self.db.executemany("INSERT OR REPLACE INTO embeddings VALUES (?,?,?,?)",
                                 [(encoder_id, k, int(v.size), v.tobytes()) for k, v in zip(keys, vectors)])

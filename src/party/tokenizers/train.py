@@ -80,7 +80,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
                             **data_identity(data.index.path, data.index.root)})
     rdir = resume_dir(cfg.vqvae.resume_dir, stream, key)
     ckpt = rdir / "last.ckpt"
-    resume = resume_checkpoint(rdir, t["resume"])
+    resume = resume_checkpoint(rdir, t["resume"], "vqvae.train.resume")
     n_params = count_params(model)
     run.set_tags({"party.stream": stream, "party.resume_key": key,
                   "party.resumed": str(resume is not None).lower()})
