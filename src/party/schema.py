@@ -239,6 +239,7 @@ class PartTexts:
     out_dir: str = MISSING
     cache_path: str = MISSING
     retry_fallbacks: bool = MISSING
+    max_fallback_rate: float = MISSING
     concurrency: int = MISSING
     # part_texts=openai
     base_url: Optional[str] = None

@@ -65,7 +65,7 @@ def test_good_answers_then_rerun_makes_no_calls(tmp_path, fake_llm, monkeypatch)
 def test_malformed_429_500_timeout_all_end_in_valid_cache(tmp_path, fake_llm):
     script = {
         ALL[0]: ["malformed", "malformed", "malformed"],          # -> fallback after 3 attempts
-        ALL[1]: ["malformed", "badjson", "good"],                 # valid on the 3rd attempt
+        ALL[1]: ["malformed", "badjson", "good"],                 # a format failure, a retry, good
         ALL[2]: ["429", "429", "good"],                           # retried
         ALL[3]: ["500", "503", "good"],
         ALL[4]: ["slow", "good"],                                 # read timeout, retried
@@ -77,8 +77,8 @@ def test_malformed_429_500_timeout_all_end_in_valid_cache(tmp_path, fake_llm):
     stats = cache_part_texts.run(cfg)
     assert stats["fallbacks"] == 1 and stats["fallbacks_new"] == 1
     assert list(stats["fallback_captions"]) == [ALL[0]]
-    assert stats["format_failures"] == 3 + 2 + 1
-    assert stats["retries"] == 2 + 2 + 1
+    assert stats["format_failures"] == 3 + 1 + 1
+    assert stats["retries"] == 1 + 2 + 2 + 1
     assert stats["calls"] == llm.requests == 3 + 3 + 3 + 3 + 2 + 2
     out = load_part_texts(cfg.part_texts.out_dir)
     assert out[ALL[0]] == {"arms": "No significant movement", "legs": "No significant movement"}
@@ -88,7 +88,7 @@ def test_malformed_429_500_timeout_all_end_in_valid_cache(tmp_path, fake_llm):
     assert set(rows) == set(ALL)                                   # every caption has an entry
     assert [c for c, (_, fb) in rows.items() if fb] == [ALL[0]]    # fallback recorded as such
     saved = json.loads((tmp_path / "part_texts" / "stats.json").read_text())
-    assert saved["fallbacks"] == 1 and saved["retries"] == 5
+    assert saved["fallbacks"] == 1 and saved["retries"] == 6
     # cached fallbacks are not asked again ...
     n = llm.requests
     assert cache_part_texts.run(cfg)["calls"] == 0 and llm.requests == n
@@ -97,6 +97,39 @@ def test_malformed_429_500_timeout_all_end_in_valid_cache(tmp_path, fake_llm):
     stats = cache_part_texts.run(cfg)
     assert stats["calls"] == 1 and stats["fallbacks"] == 0
     assert load_part_texts(cfg.part_texts.out_dir)[ALL[0]] == _expected(ALL[0])
+
+
+def test_a_broken_body_is_a_transport_failure_never_cached(tmp_path, fake_llm):
+    """HTTP 200 with truncated JSON is retried like a dropped connection; when retries run out
+    the caption is a request failure (not cached), so a rerun against a fixed server asks it."""
+    write_index(tmp_path, CAPS)
+    llm = fake_llm(script={ALL[1]: ["truncated", "good"], ALL[2]: ["truncated"] * 10})
+    cfg = openai_cfg(tmp_path, llm, **{"part_texts.request_failure": "fallback"})
+    stats = cache_part_texts.run(cfg)
+    assert stats["format_failures"] == 0 and stats["retries"] == 1 + 3
+    assert stats["request_failures"] == 1 and list(stats["request_failed_captions"]) == [ALL[2]]
+    assert "not a chat completion" in stats["request_failed_captions"][ALL[2]]
+    assert load_part_texts(cfg.part_texts.out_dir)[ALL[1]] == _expected(ALL[1])
+    assert ALL[2] not in _cache_rows(cfg)                 # not remembered as the model's answer
+    llm.script = {}
+    stats = cache_part_texts.run(cfg)
+    assert stats["calls"] == 1 and stats["fallbacks"] == 0
+    assert load_part_texts(cfg.part_texts.out_dir)[ALL[2]] == _expected(ALL[2])
+
+
+def test_too_many_fallbacks_fail_the_stage(tmp_path, fake_llm):
+    """Most captions answered out of format: the stage fails naming the rate and the cache,
+    writes nothing, and a rerun with retry_fallbacks against a good server recovers."""
+    write_index(tmp_path, CAPS)
+    llm = fake_llm(default="malformed")
+    cfg = openai_cfg(tmp_path, llm)
+    with pytest.raises(BackendError, match=rf"6 of 6 captions \(100%\) got the fallback.*"
+                       rf"max_fallback_rate 0.2.*{cfg.part_texts.cache_path}"):
+        cache_part_texts.run(cfg)
+    assert not (tmp_path / "part_texts" / "part_texts.json").exists()
+    llm.default = "good"
+    cfg.part_texts.retry_fallbacks = True
+    assert cache_part_texts.run(cfg)["fallbacks"] == 0
 
 
 def test_retry_after_is_respected(tmp_path, fake_llm):

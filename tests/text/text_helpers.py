@@ -92,6 +92,8 @@ class FakeLLM:
                     return self._send(int(action), b'{"error": "scripted"}', headers)
                 if action == "badjson":
                     return self._send(200, b"<html>oops</html>")
+                if action == "truncated":                  # HTTP 200, the JSON cut mid-way
+                    return self._send(200, b'{"id": "x", "object": "chat.completion", "choi')
                 if action == "slow":
                     time.sleep(llm.slow_s)
                 content = {"good": good_answer(caption), "slow": good_answer(caption),

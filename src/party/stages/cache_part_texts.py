@@ -47,6 +47,17 @@ def run(cfg: DictConfig, run_) -> dict:
             f"retries (e.g. {next(iter(stats['request_failed_captions'].items()))}); the other "
             f"answers are cached in {pcfg.cache_path}: rerun to resume, or set "
             f"part_texts.request_failure=fallback")
+    rate = stats["fallbacks"] / max(1, len(captions))
+    if rate > float(pcfg.max_fallback_rate):
+        raise BackendError(
+            f"{stats['fallbacks']} of {len(captions)} captions ({rate:.0%}) got the fallback "
+            f"{pcfg.no_movement_text!r} (e.g. {next(iter(stats['fallback_captions'].items()))}), "
+            f"above part_texts.max_fallback_rate {pcfg.max_fallback_rate}; nothing was written. "
+            f"The answers are cached in {pcfg.cache_path}: fix the server or prompt and rerun "
+            f"with part_texts.retry_fallbacks=true, or raise part_texts.max_fallback_rate")
+    if stats["fallbacks"]:
+        log.warning("%d of %d captions (%.1f%%) got the fallback part texts (cached in %s)",
+                    stats["fallbacks"], len(captions), 100 * rate, pcfg.cache_path)
     out = Path(pcfg.out_dir)
     with atomic_dir(out) as tmp:                   # both files or neither
         write_json(tmp / "part_texts.json", {c: results[c] for c in captions})

@@ -85,7 +85,7 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
     pv = str(cfg.prompt_version)
     cache.check_prompt(backend.name, backend.model, pv, backend.fingerprint)
     cached = cache.get_many(backend.name, backend.model, pv, captions, [str(p) for p in cfg.parts])
-    if bool(cfg.get("retry_fallbacks", False)):
+    if bool(cfg.retry_fallbacks):
         cached = {c: r for c, r in cached.items() if not r["fallback"]}
     results = {c: r["parts"] for c, r in cached.items()}
     fallbacks = {c: r["reason"] for c, r in cached.items() if r["fallback"]}
@@ -109,8 +109,8 @@ def fill_part_texts(captions: list[str], backend, cache: PartTextCache, cfg,
             stats["request_failures"] += 1
             request_failed[cap] = res.reason
 
-    workers = max(1, int(cfg.get("concurrency", 1)))
-    max_consecutive = int(cfg.get("max_consecutive_failures", 0)) or None
+    workers = max(1, int(cfg.concurrency))
+    max_consecutive = int(cfg.get("max_consecutive_failures") or 0) or None   # openai only
     bar = tqdm(total=len(todo), desc=f"part texts ({backend.name})", disable=not progress or not todo)
     stop: threading.Event = getattr(backend, "stop", threading.Event())
     streak = 0

@@ -6,8 +6,8 @@ Per caption (``describe``):
   is asked again (TextIM §3.3); after the last failure the result is the fallback
   ``"No significant movement"`` for every part, marked ``fallback`` (and cached: asking again
   would cost the same);
-- each request is retried up to ``max_retries`` times on 429, 5xx, timeouts and connection
-  errors, sleeping ``backoff_base_s * 2**k`` (capped at ``backoff_max_s``, at least the
+- each request is retried up to ``max_retries`` times on 429, 5xx, timeouts, connection
+  errors and HTTP 200 bodies that are not a chat completion (truncated JSON, a proxy's page), sleeping ``backoff_base_s * 2**k`` (capped at ``backoff_max_s``, at least the
   server's ``Retry-After``); when retries run out the caption is a *request failure*: not cached,
   and the stage stops or falls back according to ``request_failure``;
 - other HTTP errors (400/401/403/404...) raise ``BackendError``: config is wrong, retrying won't help.
@@ -30,7 +30,7 @@ import urllib.error
 import urllib.request
 
 from party.text.backends.base import BackendError, PartTextResult
-from party.text.prompt import NO_MOVEMENT, FormatError, build_messages, parse_answer, prompt_fingerprint
+from party.text.prompt import FormatError, build_messages, parse_answer, prompt_fingerprint
 
 log = logging.getLogger(__name__)
 RETRY_STATUS = {408, 409, 425, 429, 500, 502, 503, 504, 520, 522, 524, 529}
@@ -62,7 +62,7 @@ class OpenAIBackend:
         self.cfg = cfg
         self.model = str(cfg.model)
         self.url = str(cfg.base_url).rstrip("/") + "/chat/completions"
-        self.no_movement = str(cfg.get("no_movement_text", NO_MOVEMENT))
+        self.no_movement = str(cfg.no_movement_text)
         self.part_names = [str(p) for p in cfg.parts]
         self.stop = stop or threading.Event()
         self.fingerprint = prompt_fingerprint(self.part_names)
@@ -70,7 +70,7 @@ class OpenAIBackend:
         self._key = os.environ.get(env) if env else None
         if env and not self._key:
             log.warning("environment variable %s is not set: sending requests without an API key", env)
-        self._rng = random.Random(int(cfg.get("seed", 0)))
+        self._rng = random.Random(int(cfg.seed))
 
     # -- one HTTP request -------------------------------------------------------------
     def _post(self, body: bytes) -> str:
@@ -97,10 +97,15 @@ class OpenAIBackend:
             raise TransientError(f"connection error: {type(e).__name__}: {e}") from None
         try:
             obj = json.loads(payload)
-            return obj["choices"][0]["message"]["content"] or ""
+            content = obj["choices"][0]["message"]["content"]
         except (ValueError, KeyError, IndexError, TypeError) as e:
-            raise FormatError(f"response is not a chat completion ({type(e).__name__}: "
-                              f"{payload[:120]!r})") from None
+            # a truncated or foreign body (a proxy's HTML page, a cut connection) is the
+            # transport's failure, not the model's answer: retried, never cached as an answer
+            raise TransientError(f"response body is not a chat completion ({type(e).__name__}: "
+                                 f"{payload[:120]!r})") from None
+        if content is not None and not isinstance(content, str):
+            raise TransientError(f"response content is a {type(content).__name__}, not text")
+        return content or ""
 
     def _request(self, body: bytes, res: PartTextResult) -> str:
         attempt = 0
