@@ -73,3 +73,32 @@ def test_stages_list_describes_each_and_help_does_not_start_hydra(capsys):
     out = capsys.readouterr().out
     assert out.startswith("party train_vqvae [key=value") and "vqvae.stream" in out
     assert main(["params", "--help"]) == 0 and "--check" in capsys.readouterr().out
+
+
+def test_config_errors_are_one_line_naming_group_and_options(tmp_path):
+    """A wrong group option, a group chosen at stage time, and Hydra's own help in a project
+    whose root holds .venv/ and outputs/ folders (which are no config groups)."""
+    import shutil
+    shutil.copytree(ROOT / "conf", tmp_path / "conf")
+    (tmp_path / "outputs" / "train_vqvae" / "2026" / ".hydra").mkdir(parents=True)
+    (tmp_path / "outputs" / "train_vqvae" / "2026" / ".hydra" / "config.yaml").write_text("a: 1\n")
+    (tmp_path / ".venv" / "lib" / "pkg").mkdir(parents=True)
+    (tmp_path / ".venv" / "lib" / "pkg" / "x.yaml").write_text("b: 2\n")
+
+    def party(*args):
+        return subprocess.run([sys.executable, "-m", "party.cli", *args], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=300)
+
+    bad = party("params", "dataset=foo")
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert bad.stderr.strip() == ("party params: dataset=foo: no such option in conf/dataset/; "
+                                  "options: humanml3d, kit, synthetic")
+    assert party("params").returncode == 0
+    grp = party("train_vqvae", "vqvae=paper")
+    assert grp.returncode != 0 and "+vqvae" not in grp.stderr
+    assert "run `party params vqvae=paper`" in grp.stderr and "Options for vqvae: cpu, paper" in grp.stderr
+    hh = party("train_vqvae", "--hydra-help")
+    assert hh.returncode == 0, hh.stderr
+    groups = hh.stdout.split("== Configuration groups ==", 1)[1]
+    assert "hydra/launcher: basic, submitit_local, submitit_slurm" in groups
+    assert ".hydra" not in groups and "outputs" not in groups and ".venv" not in groups and "lib" not in groups

@@ -60,6 +60,41 @@ def objective_value(metrics, path: str) -> float:
     return float(node)
 
 
+def group_options(group: str, conf: Path | None = None) -> list[str]:
+    """The choices of config group ``group`` (``conf/<group>/*.yaml``), [] if it is no group."""
+    d = (conf or Path.cwd() / "conf") / group
+    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else []
+
+
+def refuse_group_choice(stage: str, overrides: list[str]) -> None:
+    """``party <stage> vqvae=paper`` would reach Hydra, which answers "use +vqvae=paper" (that
+    does not work either: params.yaml has no defaults list). Say where groups are chosen."""
+    for o in overrides:
+        key, _, value = o.lstrip("+~").partition("=")
+        if "." in key or "/" in key or key == "hydra":
+            continue
+        options = group_options(key)
+        if options:
+            sys.exit(f"party {stage}: {key}={value} chooses a config group, and groups are chosen "
+                     f"when composing params.yaml: run `party params {key}={value}` (then "
+                     f"`party {stage}` or `dvc repro`). Options for {key}: {', '.join(options)}; "
+                     f"single keys are overridden here as {key}.<key>=<value>")
+
+
+def _params_dir(params: Path) -> Path:
+    """A folder holding only (a link to) the params file, as Hydra's config_path: Hydra lists
+    every folder of its config dir as a config group (in --help, in errors), and the project
+    root holds .venv, data/ and outputs/ (minutes to walk, and nonsense groups)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    d = Path(tempfile.mkdtemp(prefix="party-params-"))
+    atexit.register(shutil.rmtree, d, ignore_errors=True)
+    (d / params.name).symlink_to(params)
+    return d
+
+
 def run_stage(stage: str, argv: list[str]):
     import hydra
 
@@ -70,12 +105,13 @@ def run_stage(stage: str, argv: list[str]):
     if not params.exists():
         sys.exit(f"party: {params} not found; run `party params` first (or set $PARTY_PARAMS)")
     values = [a for a in argv if "=" in a and not a.startswith("-")]
+    refuse_group_choice(stage, values)
     try:
         check_overrides([v for v in values if not v.startswith("hydra")], stage)
     except DivergingOverride as e:
         sys.exit(str(e))
 
-    @hydra.main(version_base=None, config_path=str(params.parent), config_name=params.stem)
+    @hydra.main(version_base=None, config_path=str(_params_dir(params)), config_name=params.stem)
     def app(cfg):
         metrics = mod.run(cfg)
         return objective_value(metrics, str(cfg.objective)) if cfg.objective else metrics
@@ -116,9 +152,23 @@ def cmd_params(argv: list[str]) -> int:
             return 1
         print("params.yaml matches conf/")
         return 0
-    write_params("params.yaml", overrides)
+    from hydra.errors import MissingConfigException
+    try:
+        write_params("params.yaml", overrides)
+    except MissingConfigException as e:
+        sys.exit(f"party params: {_missing_choice(overrides) or e}")
     print("wrote params.yaml")
     return 0
+
+
+def _missing_choice(overrides: list[str]) -> str | None:
+    """One line naming the group and its options, for an override choosing no such option."""
+    for o in overrides:
+        key, _, value = o.lstrip("+~").partition("=")
+        options = group_options(key)
+        if options and value not in options:
+            return f"{key}={value}: no such option in conf/{key}/; options: {', '.join(options)}"
+    return None
 
 
 def cmd_sweep_status(argv: list[str]) -> int:
