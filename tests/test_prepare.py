@@ -41,6 +41,10 @@ def test_prepare_real_layout_indexes_and_reports_rejections(tmp_path):
     assert manifest["counts"]["train"] == {"clips": 2, "captions": 4, "motions": 1, "mirrors": 1}
     assert manifest["n_rejected"] == 1 and "NaN" in manifest["rejected"][0]["reason"]
     assert "000002.npy" in manifest["rejected"][0]["file"]
+    assert manifest["n_clamped_captions"] == 0 and manifest["warnings"] == []
+    summary = res.stdout.split("prepare: ", 1)[1]            # the console names the problem files
+    assert "rejected: " in summary and "000002.npy: contains NaN" in summary
+    assert "all of them, with file and reason: data/prepared/manifest.json" in summary
     index = load_index(prepared)
     assert Path(index.root) == root.resolve() and len(index.clips("test")) == 1
     assert not [p for p in prepared.parent.iterdir() if p.name.startswith(".")]   # no temp dirs left
@@ -72,3 +76,17 @@ def test_prepare_strict_stops_on_bad_file(tmp_path):
                                 "tracking.enabled=false"])       # MLflow: see the test above
     res = _run(tmp_path, params)
     assert res.returncode != 0 and "missing_one.npy: file missing" in res.stderr
+
+
+def test_prepare_strict_stops_on_a_bad_caption_line(tmp_path):
+    """One malformed line in a file that also has a good one: skipped and counted by default,
+    a strict prepare exits non-zero naming file:line and writes no index."""
+    root = write_humanml3d_fixture(tmp_path / "H3D", {"train": ["000001"], "val": ["000002"],
+                                                      "test": ["000003"]}, n_frames=60)
+    with open(root / "texts/000002.txt", "a") as f:
+        f.write("a broken line#without/DET#fields\n")
+    params = _params(tmp_path, ["dataset=humanml3d", f"dataset.root={root}", "dataset.strict=true",
+                                "tracking.enabled=false"])
+    res = _run(tmp_path, params)
+    assert res.returncode != 0 and "000002.txt:3: expected" in res.stderr and "strict" in res.stderr
+    assert not (tmp_path / "data/prepared").exists()
