@@ -102,3 +102,31 @@ def test_config_errors_are_one_line_naming_group_and_options(tmp_path):
     groups = hh.stdout.split("== Configuration groups ==", 1)[1]
     assert "hydra/launcher: basic, submitit_local, submitit_slurm" in groups
     assert ".hydra" not in groups and "outputs" not in groups and ".venv" not in groups and "lib" not in groups
+
+
+def test_party_params_choices_persist_for_every_composition(tmp_path, monkeypatch):
+    """`party params experiment=tiny` then a composition with one more override (what
+    `dvc exp run -S k=v` does with conf/config.yaml) keeps tiny; --check agrees; --reset drops it."""
+    import shutil
+
+    import yaml
+
+    from party.cli import main
+    from party.config import compose, to_params
+    shutil.copytree(ROOT / "conf", tmp_path / "conf")
+    monkeypatch.chdir(tmp_path)
+    full = to_params(compose([], tmp_path / "conf"))
+    assert main(["params", "experiment=tiny", "dataset.synthetic.seed=7"]) == 0
+    tiny = yaml.safe_load((tmp_path / "params.yaml").read_text())
+    assert tiny["dataset"]["synthetic"]["n_motions"] == 80 != full["dataset"]["synthetic"]["n_motions"]
+    assert main(["params", "--check"]) == 0                             # against the kept choice
+    dvc_like = to_params(compose(["vqvae.train.max_steps=20"], tmp_path / "conf"))
+    changed = [k for k in ("dataset", "text", "evaluator", "generator", "eval") if dvc_like[k] != tiny[k]]
+    assert changed == [] and dvc_like["vqvae"]["train"]["max_steps"] == 20
+    assert dvc_like["dataset"]["synthetic"]["seed"] == 7
+    assert main(["params", "~dataset.synthetic.seed"]) == 0             # drop one kept value
+    assert yaml.safe_load((tmp_path / "params.yaml").read_text())["dataset"]["synthetic"]["seed"] == \
+        full["dataset"]["synthetic"]["seed"]
+    assert main(["params", "--reset"]) == 0
+    assert yaml.safe_load((tmp_path / "params.yaml").read_text()) == full
+    assert not (tmp_path / "conf/local").exists() or not any((tmp_path / "conf/local").iterdir())

@@ -105,8 +105,9 @@ def test_rerun_is_cached_and_runs_are_tracked(pipeline):
         stages = {v for (v,) in con.execute("select value from tags where key = 'party.stage'")}
     assert {"prepare", "cache_part_texts", "train_vqvae", "train_evaluator", "train_generator", "generate",
             "evaluate"} <= stages
-    shown = _sh([str(BIN / "dvc"), "metrics", "show", "--json"], work, env)
-    assert "metrics.json" in shown.stdout
+    shown = json.loads(_sh([str(BIN / "dvc"), "metrics", "show", "--json"], work, env).stdout)
+    files = next(iter(shown.values()))["data"]
+    assert "metrics/eval/ground_truth.json" in files and "metrics/eval/party.json" in files
 
 
 @pytest.mark.slow
@@ -131,3 +132,29 @@ def test_generator_ablation_grid_on_the_pipeline_outputs(pipeline):
     with sqlite3.connect(work / "mlruns/mlflow.db") as con:
         points = {v for (v,) in con.execute("select value from tags where key = 'party.sweep_point'")}
     assert points >= {"off", "on"}
+
+
+@pytest.mark.slow
+def test_queued_experiment_keeps_the_choices_and_shows_its_metrics(pipeline):
+    """`party params experiment=<e>` then `dvc exp run --queue -S k=v`: the queued run composes
+    conf/ with the kept choice (only k changes), and `dvc exp show --json` holds its metrics."""
+    work, env, _ = pipeline
+    _sh(["git", "add", "conf/local/choices.yaml"], work, env)           # as `party params` advises
+    params = yaml.safe_load((work / "params.yaml").read_text())
+    reps = int(params["eval"]["replications"]) + 1
+    _sh([str(BIN / "dvc"), "exp", "run", "--queue", "-n", "more-reps", "-S", f"eval.replications={reps}"],
+        work, env)
+    _sh([str(BIN / "dvc"), "exp", "run", "--run-all"], work, env)
+    shown = json.loads(_sh([str(BIN / "dvc"), "exp", "show", "--json"], work, env).stdout)
+    exps = [r for row in shown for e in (row.get("experiments") or []) for r in e["revs"]
+            if r["name"] == "more-reps"]
+    assert len(exps) == 1 and exps[0]["data"], shown
+    data = exps[0]["data"]
+    got = data["params"]["params.yaml"]["data"]
+    assert got["eval"]["replications"] == reps
+    assert got["dataset"] == params["dataset"] and got["vqvae"] == params["vqvae"]   # the choice kept
+    top1 = data["metrics"]["metrics/eval/ground_truth.json"]["data"]["holistic"]["top1"]
+    assert 0 < top1 <= 1
+    with sqlite3.connect(work / "mlruns/mlflow.db") as con:             # the run logged in the main store
+        names = {v for (v,) in con.execute("select value from tags where key = 'party.dvc_exp_name'")}
+    assert "more-reps" in names

@@ -2,7 +2,9 @@
 
     party <stage> [key=value ...]     run a stage on params.yaml (+ Hydra overrides)
     party <stage> --multirun a=1,2    Hydra sweep (e.g. with hydra/launcher=submitit_slurm)
-    party params [group=choice ...]   compose conf/ into params.yaml (as `dvc exp run` does)
+    party params [group=choice ...]   compose conf/ into params.yaml (as `dvc exp run` does);
+                                      the choices are kept in conf/local/choices.yaml
+    party params --reset              forget the kept choices
     party params --check              fail if params.yaml is stale w.r.t. conf/
     party stages                      list the stages
     party sweep-status <out_dir>      a grid's points: done / running / failed / pending
@@ -133,32 +135,64 @@ def run_stage(stage: str, argv: list[str]):
     return app()
 
 
-PARAMS_HELP = """party params [group=choice | key=value ...] [--check]
+PARAMS_HELP = """party params [group=choice | key=value | ~key ...] [--reset] [--check]
 
 Compose conf/ (conf/config.yaml and its groups: dataset, text, vqvae, evaluator, generator,
 trainer, ...; experiment=<name> applies conf/experiment/<name>.yaml) into params.yaml, the
 file every stage and `dvc repro` read. A wrong type or an unknown key fails naming it.
-  --check   exit 1 if params.yaml differs from what conf/ (with these overrides) composes"""
+The choices given are kept in conf/local/choices.yaml (merged with earlier ones; ~key drops
+one), which every composition of conf/ reads, so `dvc exp run -S k=v` changes only k.
+  --reset   forget the kept choices first (back to conf/config.yaml's defaults)
+  --check   exit 1 if params.yaml differs from what conf/ (with the kept choices and these
+            overrides) composes"""
 
 
 def cmd_params(argv: list[str]) -> int:
-    from party.config import params_stale, write_params
-    check = "--check" in argv
-    overrides = [a for a in argv if a != "--check"]
-    if check:
-        diffs = params_stale(overrides=overrides)
-        if diffs:
-            print("params.yaml is stale; run `party params`. Differing keys:\n  " + "\n  ".join(diffs[:50]))
-            return 1
-        print("params.yaml matches conf/")
-        return 0
     from hydra.errors import MissingConfigException
+
+    from party.config import CHOICES, choices_as_overrides, params_stale, persist_choices, write_params
+    check, reset = "--check" in argv, "--reset" in argv
+    overrides = [a for a in argv if a not in ("--check", "--reset")]
     try:
-        write_params("params.yaml", overrides)
+        if check:
+            diffs = params_stale(overrides=overrides)
+            if diffs:
+                print("params.yaml is stale; run `party params`. Differing keys:\n  " + "\n  ".join(diffs[:50]))
+                return 1
+            print("params.yaml matches conf/" + _choices_note(choices_as_overrides()))
+            return 0
+        path = Path("conf") / CHOICES
+        before = path.read_bytes() if path.exists() else None
+        persist_choices(overrides, reset=reset)
+        try:
+            write_params("params.yaml")
+        except BaseException:                     # a bad choice is not kept
+            if before is None:
+                path.unlink(missing_ok=True)
+            else:
+                path.write_bytes(before)
+            raise
     except MissingConfigException as e:
         sys.exit(f"party params: {_missing_choice(overrides) or e}")
-    print("wrote params.yaml")
+    print("wrote params.yaml" + _choices_note(choices_as_overrides()))
     return 0
+
+
+def _choices_note(choices: list[str]) -> str:
+    from party.config import CHOICES
+    if not choices:
+        return ""
+    note = (f" (with {' '.join(choices)}, kept in conf/{CHOICES} for every later composition, "
+            f"`dvc exp run` too; `party params --reset` drops them)")
+    try:
+        import subprocess
+        tracked = subprocess.run(["git", "ls-files", "--error-unmatch", f"conf/{CHOICES}"],
+                                 capture_output=True, timeout=10).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        tracked = True
+    if not tracked:
+        note += f"\n`git add conf/{CHOICES}` so that queued experiments (`dvc exp run --queue`) see it"
+    return note
 
 
 def _missing_choice(overrides: list[str]) -> str | None:

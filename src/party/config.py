@@ -13,6 +13,7 @@ the dotted key, before anything is written.
 """
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any, Sequence
@@ -69,6 +70,107 @@ def write_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ()
     params = to_params(compose(overrides, config_dir))
     write_text(path, dump_params(params))
     return params
+
+
+# --------------------------------------------------------------------------- persisted choices
+# `party params dataset=humanml3d dataset.root=/data/H3D` must hold for every later composition
+# of conf/, also DVC's (`dvc exp run -S k=v` recomposes conf/config.yaml + k=v): the choices go
+# to conf/local/choices.yaml, the last (optional) entry of conf/config.yaml's defaults list, as
+# `override /<group>: <choice>` entries and plain values. Overrides given later still win.
+
+CHOICES = Path("local") / "choices.yaml"
+_CHOICES_HEADER = ("# @package _global_\n"
+                   "# Written by `party params` (the choices given to it); every composition of conf/\n"
+                   "# reads it, `dvc exp run -S k=v` too. `party params --reset` removes it.\n")
+
+
+def _groups(config_dir: Path) -> set[str]:
+    return {p.name for p in config_dir.iterdir() if p.is_dir() and p.name != CHOICES.parent.name
+            and any(p.glob("*.yaml"))}
+
+
+def read_choices(config_dir: str | Path = "conf") -> tuple[dict[str, str], dict]:
+    """(group -> choice, nested values) persisted in ``conf/local/choices.yaml``."""
+    path = Path(config_dir) / CHOICES
+    if not path.exists():
+        return {}, {}
+    data = yaml.safe_load(path.read_text()) or {}
+    groups = {}
+    for entry in data.pop("defaults", []) or []:
+        (k, v), = entry.items()
+        groups[k.removeprefix("override /")] = v
+    return groups, data
+
+
+def choices_as_overrides(config_dir: str | Path = "conf") -> list[str]:
+    groups, values = read_choices(config_dir)
+
+    def flat(node, prefix=""):
+        for k, v in node.items():
+            if isinstance(v, dict) and v:
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}={json.dumps(v) if not isinstance(v, str) else v}"
+    return [f"{g}={c}" for g, c in groups.items()] + list(flat(values))
+
+
+def persist_choices(overrides: Sequence[str], config_dir: str | Path = "conf",
+                    reset: bool = False) -> Path | None:
+    """Merge ``overrides`` into the persisted choices (``reset``: start from none); returns the
+    file, or None when no choice is left (the file is then removed)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from party.io import write_text
+    config_dir = Path(config_dir)
+    path = config_dir / CHOICES
+    groups, values = ({}, {}) if reset else read_choices(config_dir)
+    known = _groups(config_dir)
+    for o in OverridesParser.create().parse_overrides(list(overrides)):
+        key = o.key_or_group
+        if key.startswith("hydra"):
+            continue
+        if key in known:
+            if o.is_delete():
+                groups.pop(key, None)
+            else:
+                groups[key] = o.value()
+            continue
+        *parents, leaf = key.split(".")
+        node = values
+        for k in parents:
+            node = node.setdefault(k, {})
+        if o.is_delete():
+            node.pop(leaf, None)
+        else:
+            node[leaf] = _plain_value(o.value())
+    values = _prune(values)
+    if not groups and not values:
+        path.unlink(missing_ok=True)
+        return None
+    body = {"defaults": [{f"override /{g}": c} for g, c in groups.items()]} if groups else {}
+    body.update(values)
+    write_text(path, _CHOICES_HEADER + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
+    return path
+
+
+def _prune(node: dict) -> dict:
+    """``node`` without the mappings that dropping keys (``~key``) left empty."""
+    out = {}
+    for k, v in node.items():
+        if isinstance(v, dict):
+            v = _prune(v)
+            if not v:
+                continue
+        out[k] = v
+    return out
+
+
+def _plain_value(v):
+    if isinstance(v, dict):
+        return {k: _plain_value(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain_value(x) for x in v]
+    return v
 
 
 def load_params(path: str | Path | None = None) -> DictConfig:

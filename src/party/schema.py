@@ -565,6 +565,8 @@ class Calibrate:
 @dataclass
 class Eval:
     out_dir: str = MISSING
+    metrics_dir: str = MISSING
+    metrics_digits: int = MISSING
     split: str = MISSING
     seed: int = MISSING
     replications: int = MISSING

@@ -137,6 +137,7 @@ def make_cfg(tmp: Path, data_root: Path, overrides=()) -> "OmegaConf":
     cfg.evaluator.trainer.num_workers = 0
     cfg.trainer.accelerator = "cpu"
     cfg.eval.out_dir = str(tmp / "eval")
+    cfg.eval.metrics_dir = str(tmp / "metrics")
     cfg.eval.replications = 3
     cfg.eval.diversity_times = 30
     cfg.eval.device = "cpu"

@@ -109,6 +109,10 @@ def test_evaluate_stage_all_sources(trained, monkeypatch):
     assert out["efficiency"]["tokenizers"]["holistic"]["n"] == 100
     written = json.loads((tmp / "eval/metrics.json").read_text())
     assert written["results"]["copy"]["arms"]["top1"]["mean"] == res["copy"]["arms"]["top1"]["mean"]
+    dvc = {p.stem: json.loads(p.read_text()) for p in (tmp / "metrics").glob("*.json")}   # DVC metrics
+    assert set(dvc) == set(res)
+    assert dvc["copy"]["arms"]["top1"] == float(f"{res['copy']['arms']['top1']['mean']:.4g}")
+    assert dvc["recon_holistic"]["reconstruction"]["mpjpe_mm"] > 0 and "ci95" not in json.dumps(dvc)
     tables = (tmp / "eval/tables.md").read_text()
     for title in ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Efficiency"):
         assert title in tables, title

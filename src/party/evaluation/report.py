@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+import numpy as np
+
 SOURCE_LABELS = {"ground_truth": "Real motion"}
 
 
@@ -162,3 +164,18 @@ def calibration_tables(rows: list[Mapping], recommended: Mapping[str, Mapping]) 
         out.append(f"### {title}\n\n" + _table(["Hyperparameters", f"{m} ground truth ↑", f"{m} mixed arms/legs ↓",
                                                  f"{m} frozen part ↓", "separation ↑"], body))
     return "\n\n".join(out) + "\n"
+
+
+def dvc_metrics(results: dict, digits: int) -> dict[str, dict]:
+    """{source: {stream | coherence | reconstruction: {metric: mean}, <subset>: {...}}}: the means
+    of ``results`` rounded to ``digits`` significant digits, one file per source for DVC
+    (``dvc metrics show`` reads it as one row per source, ``dvc exp show`` as columns)."""
+    def lean(node):
+        if isinstance(node, dict) and "mean" in node:
+            m = node["mean"]
+            return None if m is None or not np.isfinite(m) else float(f"{m:.{digits}g}")
+        if isinstance(node, dict):
+            out = {k: v for k, v in ((k, lean(v)) for k, v in node.items()) if v is not None and v != {}}
+            return out
+        return None
+    return {source: lean(res) for source, res in results.items()}

@@ -4,10 +4,11 @@ Reads ``eval.*`` (protocol), ``evaluator.*`` (which evaluators), the prepared
 dataset, ``<evaluator.out_dir>/<stream>/finest.tar``, optional tokenizer
 checkpoints ``<eval.sources.tokenizers_dir>/<stream>/last.ckpt`` and optional
 generated runs ``<eval.sources.generated_dir>/<run>/index.json``. Writes
-``<eval.out_dir>/`` atomically: ``metrics.json`` (DVC metrics), ``tables.md``
+``<eval.out_dir>/`` atomically: ``metrics.json`` (every number with its CI), ``tables.md``
 (paper Tables 1-5 layout), ``report.html`` (tables, charts, sample animations; ``eval.report``)
 and ``sc_reference.json`` (SC statistics of the
-reference split); logs everything to MLflow.
+reference split), and ``<eval.metrics_dir>/<source>.json`` (the means, DVC metrics, tracked
+by git so that ``dvc exp show`` holds every experiment's); logs everything to MLflow.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from party.evaluation.loading import (coherence_parts, efficiency, fit_sc_refere
                                       load_evaluators, tokenizer_sources)
 from party.evaluation.protocol import Embedder, run_protocol
 from party.evaluation.html import write_report
-from party.evaluation.report import report
+from party.evaluation.report import dvc_metrics, report
 from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
 from party.io import atomic_dir, write_json, write_text
 from party.stage import stage
@@ -81,6 +82,9 @@ def run(cfg: DictConfig, run_) -> dict:
         if sc_ref is not None:
             write_json(tmp / "sc_reference.json", sc_ref.to_dict())
         write_report(tmp / "report.html", cfg, ctx, results, tables, generated)
+        with atomic_dir(ec.metrics_dir) as mtmp:          # one folder, swapped in whole
+            for source, means in dvc_metrics(results, ec.metrics_digits).items():
+                write_json(mtmp / f"{source}.json", means)
     flat = log_metrics_flat(results)
     run_.log_metrics({k[: -len("/mean")]: v for k, v in flat.items() if k.endswith("/mean")})
     run_.log_metrics({k: v for k, v in log_metrics_flat(eff, "efficiency/").items()})
