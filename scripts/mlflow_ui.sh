@@ -9,5 +9,9 @@ if [ -z "$MLFLOW" ]; then
   echo "mlflow not found: run bash scripts/setup.sh (or pip install mlflow)" >&2
   exit 1
 fi
+# a moved or copied clone: point the store's recorded artifact locations at this folder first
+PY="$(dirname "$MLFLOW")/python"
+[ -x "$PY" ] && [ -f mlruns/mlflow.db ] && "$PY" -c \
+  "from party.tracking import relocate_store; relocate_store('sqlite:///$PWD/mlruns/mlflow.db')" || true
 exec "$MLFLOW" ui --backend-store-uri "sqlite:///$PWD/mlruns/mlflow.db" \
   --default-artifact-root "$PWD/mlruns/artifacts" --host 127.0.0.1 --port "${PORT:-5000}"

@@ -325,3 +325,71 @@ def test_runs_of_killed_processes_are_not_left_running(tmp_path):
         assert client.get_run(live_id).info.status == "KILLED"
     finally:
         live.kill()
+
+
+def test_a_moved_clone_logs_into_its_own_store(tmp_path):
+    """Copy a project with its store elsewhere: runs opened there log artifacts under the copy,
+    old runs' artifacts are read from the copy, and the original's folder is not touched."""
+    import shutil
+
+    from mlflow.tracking import MlflowClient
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    cfg_a = make_cfg(a / "mlruns", experiment="moved")
+    with tracking.start_run(cfg_a, "prepare") as run:
+        tracking.log_json({"where": "a"}, "w.json")
+    old_id = run.info.run_id
+    shutil.copytree(a, b)
+    before = sorted(str(p) for p in (a / "mlruns").rglob("*"))
+    cfg_b = make_cfg(b / "mlruns", experiment="moved")
+    with tracking.start_run(cfg_b, "evaluate") as run:
+        tracking.log_json({"where": "b"}, "w.json")
+    new_id = run.info.run_id
+    assert (b / "mlruns" / "artifacts" / new_id / "artifacts" / "w.json").exists()
+    assert sorted(str(p) for p in (a / "mlruns").rglob("*")) == before      # the original untouched
+    client = MlflowClient(tracking.tracking_uri(cfg_b))
+    old = client.get_run(old_id)
+    assert old.info.artifact_uri.startswith((b / "mlruns").resolve().as_uri())
+    local = client.download_artifacts(old_id, "w.json", str(tmp_path))
+    assert json.loads(Path(local).read_text()) == {"where": "a"}
+    assert tracking.relocate_store(tracking.tracking_uri(cfg_b)) == 0      # nothing left to move
+
+
+def test_runs_tell_apart_dvc_experiment_git_changes_and_resumes(tmp_path, monkeypatch):
+    """The DVC experiment in the run name; git_dirty false when only generated files differ,
+    with the differing files listed; a resumed training linked to the run it continues."""
+    from mlflow.tracking import MlflowClient
+
+    repo = tmp_path / "repo"
+    (repo / "src").mkdir(parents=True)
+    for f in ("params.yaml", "dvc.lock", "src/a.py"):
+        (repo / f).write_text("x\n")
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run([*git, "init", "-q"], cwd=repo, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=repo, check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=repo, check=True)
+    monkeypatch.chdir(repo)
+    for f in ("params.yaml", "dvc.lock"):
+        (repo / f).write_text("y\n")
+    state = tracking._git_state()
+    assert state["party.git_dirty"] == "false" and state["party.git_changed"] == "dvc.lock, params.yaml"
+    (repo / "src/a.py").write_text("z\n")
+    assert tracking._git_state()["party.git_dirty"] == "true"
+
+    cfg = make_cfg(tmp_path / "mlruns", experiment="apart")
+    monkeypatch.setenv("DVC_EXP_NAME", "lr-high")
+    with tracking.start_run(cfg, "train_vqvae", run_name="train_vqvae-arms") as first:
+        first.set_tags({"party.resume_key": "k1"})
+    monkeypatch.delenv("DVC_EXP_NAME")
+    with tracking.start_run(cfg, "train_vqvae", run_name="train_vqvae-arms") as second:
+        second.set_tags({"party.resume_key": "k1"})
+        assert tracking.link_resumed(second, "k1") == first.info.run_id
+    with tracking.start_run(cfg, "train_vqvae", run_name="train_vqvae-arms") as third:
+        third.set_tags({"party.resume_key": "k1"})
+        assert tracking.link_resumed(third, "k1") == second.info.run_id
+    client = MlflowClient(tracking.tracking_uri(cfg))
+    assert client.get_run(first.info.run_id).info.run_name == "train_vqvae-arms@lr-high"
+    assert client.get_run(second.info.run_id).info.run_name == "train_vqvae-arms"
+    for r in (second, third):
+        assert client.get_run(r.info.run_id).data.tags["mlflow.parentRunId"] == first.info.run_id
+    assert client.get_run(third.info.run_id).data.tags["party.resumed_from"] == second.info.run_id

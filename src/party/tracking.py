@@ -247,18 +247,56 @@ class NullRun(_RunMethods):
         return False
 
 
+# files every documented workflow changes (generated or written by the pipeline itself):
+# they do not make a run's code or config differ from its commit
+GENERATED = ("params.yaml", "dvc.lock", "metrics/", "conf/local/")
+
+
 def _git_state() -> dict[str, str]:
+    """``party.git_commit``; ``party.git_changed``: the tracked files that differ from it;
+    ``party.git_dirty``: whether any of those is more than a generated file (``GENERATED``)."""
     def git(*args: str) -> str | None:
         try:
             r = subprocess.run(["git", *args], capture_output=True, text=True, timeout=10)
         except (OSError, subprocess.TimeoutExpired):
             return None
-        return r.stdout.strip() if r.returncode == 0 else None
+        return r.stdout.rstrip("\n") if r.returncode == 0 else None   # porcelain lines start with a space
 
     commit = git("rev-parse", "HEAD")
-    dirty = git("status", "--porcelain", "--untracked-files=no")
-    return {"party.git_commit": commit or "unknown",
-            "party.git_dirty": "unknown" if dirty is None else str(bool(dirty)).lower()}
+    status = git("status", "--porcelain", "--untracked-files=no")
+    if status is None:
+        return {"party.git_commit": commit or "unknown", "party.git_dirty": "unknown"}
+    changed = sorted(line[3:].split(" -> ")[-1] for line in status.splitlines() if line.strip())
+    source = [f for f in changed if not f.startswith(GENERATED)]
+    listed = ", ".join(changed)
+    return {"party.git_commit": commit or "unknown", "party.git_dirty": str(bool(source)).lower(),
+            "party.git_changed": listed if len(listed) <= 4000 else listed[:3997] + "..."}
+
+
+def link_resumed(run, resume_key: str) -> str | None:
+    """A training resumed from a rolling checkpoint continues the runs of the same
+    ``party.resume_key``: tag ``party.resumed_from`` (the latest of them) and, unless the run
+    already has a parent (a sweep point), ``mlflow.parentRunId`` = the first, so the UI shows
+    one training as one run with its continuations beneath. Returns the run resumed from."""
+    run_id = getattr(run.info, "run_id", None)
+    if not run_id:
+        return None
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    this = client.get_run(run_id)
+    earlier = [r for r in client.search_runs(
+        [this.info.experiment_id], filter_string=f"tags.`party.resume_key` = '{resume_key}'",
+        order_by=["attributes.start_time ASC"], max_results=1000) if r.info.run_id != run_id
+        and r.info.start_time <= this.info.start_time]
+    if not earlier:
+        return None
+    root = earlier[0].data.tags.get("party.resume_root", earlier[0].info.run_id)
+    tags = {"party.resumed_from": earlier[-1].info.run_id, "party.resume_root": root}
+    if "mlflow.parentRunId" not in this.data.tags:
+        tags["mlflow.parentRunId"] = root
+    run.set_tags(tags)
+    return earlier[-1].info.run_id
 
 
 @contextlib.contextmanager
@@ -275,10 +313,61 @@ def _store_lock(uri: str):
         yield
 
 
+_LOCATION_COLUMNS = (("experiments", "artifact_location", "experiment_id"), ("runs", "artifact_uri", "run_uuid"),
+                     ("logged_models", "artifact_location", "model_id"),
+                     ("model_versions", "source", "rowid"), ("model_versions", "storage_location", "rowid"))
+
+
+def relocate_store(uri: str) -> int:
+    """Point a moved or copied SQLite store at its own artifacts: MLflow records absolute
+    artifact locations (``file:///old/clone/mlruns/artifacts/...``), so a clone moved elsewhere
+    would read from and write into the original's folder. Every location under the old store
+    folder is rewritten to this store's folder (``<db dir>``); locations elsewhere (a server's,
+    an artifact root configured on purpose) are left alone. Returns the rows changed."""
+    import sqlite3
+
+    db = _sqlite_path(uri)
+    if db is None or not db.exists():
+        return 0
+    new_root = db.parent.resolve()
+    con = sqlite3.connect(db)
+    try:
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if "experiments" not in tables:
+            return 0
+        old_roots = set()
+        for (loc,) in con.execute("SELECT artifact_location FROM experiments"):
+            path = Path(loc[len("file://"):] if loc.startswith("file://") else loc)
+            if loc.startswith(("file://", "/")) and path.parent != new_root and \
+                    (path.name == "artifacts" or path.name.isdigit()):
+                old_roots.add(str(path.parent))
+        changed = 0
+        with con:
+            for old in sorted(old_roots, key=len, reverse=True):
+                for table, col, key in _LOCATION_COLUMNS:
+                    if table not in tables:
+                        continue
+                    rows = con.execute(f"SELECT {key}, {col} FROM {table}").fetchall()
+                    for k, value in rows:
+                        for prefix in (f"file://{old}/", f"{old}/"):
+                            if isinstance(value, str) and value.startswith(prefix):
+                                new = prefix.replace(old, str(new_root), 1) + value[len(prefix):]
+                                con.execute(f"UPDATE {table} SET {col}=? WHERE {key}=?", (new, k))
+                                changed += 1
+                                break
+        if changed:
+            log.warning("%s: moved from %s; %d artifact locations now point under %s",
+                        db, ", ".join(sorted(old_roots)), changed, new_root)
+        return changed
+    finally:
+        con.close()
+
+
 def _experiment_id(name: str, uri: str) -> str:
     import mlflow
 
     with _store_lock(uri):  # the client creates (and migrates) a new store eagerly
+        relocate_store(uri)
         client = mlflow.MlflowClient(uri)
         exp = client.get_experiment_by_name(name)
         if exp is None:
@@ -373,8 +462,9 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
               parent_run_id: str | None = None, nested: bool = False) -> Iterator[Any]:
     """Open the stage's MLflow run; yields ``mlflow.ActiveRun`` (or a ``NullRun``).
 
-    Tags: ``party.stage``, ``party.git_commit``, ``party.git_dirty``, the DVC experiment
-    name/baseline when run by ``dvc exp``, ``mlflow.parentRunId`` for nested runs (an
+    Tags: ``party.stage``, ``party.git_commit``, ``party.git_dirty``, ``party.git_changed``, the
+    DVC experiment name/baseline when run by ``dvc exp`` (the run is then named
+    ``<name>@<dvc exp>``), ``mlflow.parentRunId`` for nested runs (an
     active run with ``nested=True``, or ``parent_run_id`` / ``tracking.parent_run_id``).
     Logs the flattened resolved config as params and the full config as ``config.yaml``.
     The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM) when the body raises.
@@ -409,6 +499,8 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     if parent and active is not None and active.info.run_id != parent:
         raise RuntimeError(f"start_run({stage!r}): parent_run_id {parent} is not the active "
                            f"run {active.info.run_id}")
+    if os.environ.get("DVC_EXP_NAME"):      # which DVC experiment, visible in the runs list
+        name = f"{name}@{os.environ['DVC_EXP_NAME']}"
     run = mlflow.start_run(experiment_id=exp_id, run_name=name, tags=all_tags,
                            parent_run_id=parent, nested=nested or active is not None and bool(parent),
                            log_system_metrics=bool(t["log_system_metrics"]))

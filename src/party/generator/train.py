@@ -180,6 +180,8 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
     counts = model.param_counts()
     run.set_tags({"party.method": method, "party.generator_kind": model.spec.kind, "party.resume_key": key,
                   "party.resumed": str(resume is not None).lower()})
+    if resume is not None:
+        tracking.link_resumed(run, key)
     run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds)})
     t0 = time.time()
     figures = _figures(cfg, run, val_ds, method, model.spec.kind)

@@ -84,6 +84,8 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     n_params = count_params(model)
     run.set_tags({"party.stream": stream, "party.resume_key": key,
                   "party.resumed": str(resume is not None).lower()})
+    if resume is not None:
+        tracking.link_resumed(run, key)
     t0 = time.time()
     run.log_params({"n_params": n_params, "train_crop_frames": crop,
                     "train_clips": len(loader.dataset), "val_clips": len(val_seqs)})
