@@ -19,23 +19,27 @@
 # their metrics per stage, shows which params differ between runs of a stage (ablations),
 # groups sweep children under their parent run, and plays the newest logged sample video.
 # Everything is local: no server, no network. Run it as a notebook
-# (`jupytext --to ipynb notebooks/review_runs.py`, or `pytest --nbmake`), with papermill
-# (`-p experiment party`), or as a script (`python notebooks/review_runs.py`).
+# (`jupytext --to ipynb notebooks/review_runs.py`, then Jupyter: `pip install -e .[lab]`,
+# `jupyter lab`; or `pytest --nbmake`), with papermill (`-p experiment party`), or as a
+# script (`python notebooks/review_runs.py`). Only FINISHED runs are listed unless
+# `all_statuses = True` (RUNNING, FAILED and KILLED runs too).
 
 # %% tags=["parameters"]
 tracking_uri = None   # default: $MLFLOW_TRACKING_URI, else <project>/mlruns/mlflow.db
 experiment = None     # default: $PARTY_EXPERIMENT, else "party"
 stage = None          # only runs of this stage (tags.party.stage), e.g. "train_vqvae"
+all_statuses = False  # True: also RUNNING, FAILED and KILLED runs
 max_runs = 200
 
 # %%
+import base64
 import os
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
 import mlflow
 import pandas as pd
-from IPython.display import Image, Video, display
+from IPython.display import HTML, Video, display
 
 from party import tracking
 
@@ -69,12 +73,16 @@ display(pd.DataFrame([{"experiment_id": e.experiment_id, "name": e.name,
 # `mlflow.parentRunId`, ...).
 
 # %%
-filter_string = f"tags.`party.stage` = '{stage}'" if stage else ""
-runs = mlflow.search_runs(experiment_names=[experiment], filter_string=filter_string,
+conditions = ([f"tags.`party.stage` = '{stage}'"] if stage else []) + \
+    ([] if all_statuses else ["attributes.status = 'FINISHED'"])
+runs = mlflow.search_runs(experiment_names=[experiment], filter_string=" and ".join(conditions),
                           max_results=max_runs, order_by=["attributes.start_time DESC"])
-print(f"{len(runs)} run(s) in experiment {experiment!r}")
-base_cols = ["run_id", "tags.party.stage", "tags.mlflow.runName", "status", "start_time",
-             "tags.party.git_commit", "tags.party.git_dirty"]
+print(f"{len(runs)} {'' if all_statuses else 'finished '}run(s) in experiment {experiment!r}")
+base_cols = ["run_id", "tags.party.stage", "tags.mlflow.runName", "tags.party.dvc_exp_name", "status",
+             "start_time", "tags.party.git_commit", "tags.party.git_dirty", "tags.party.git_changed"]
+for c in ("tags.party.dvc_exp_name", "tags.party.git_changed"):   # shown even when no run has it
+    if len(runs) and c not in runs.columns:
+        runs[c] = None
 overview = runs[[c for c in base_cols if c in runs.columns]] if len(runs) else runs
 display(overview)
 
@@ -150,8 +158,11 @@ for run_id in runs["run_id"] if len(runs) else []:
         local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=videos[0],
                                                     tracking_uri=tracking_uri)
     print(f"run {run_id}: {videos[0]} ({len(videos)} video(s) in the run)\n{local}")
-    display(Image(filename=local) if local.lower().endswith(".gif")
-            else Video(local, embed=True))
+    if local.lower().endswith(".gif"):   # embedded, so an exported notebook (HTML) shows the motion
+        data = base64.b64encode(Path(local).read_bytes()).decode()
+        display(HTML(f'<img src="data:image/gif;base64,{data}" alt="{videos[0]}">'))
+    else:
+        display(Video(local, embed=True))
     shown = True
     break
 if not shown:

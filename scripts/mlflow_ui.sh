@@ -13,5 +13,17 @@ fi
 PY="$(dirname "$MLFLOW")/python"
 [ -x "$PY" ] && [ -f mlruns/mlflow.db ] && "$PY" -c \
   "from party.tracking import relocate_store; relocate_store('sqlite:///$PWD/mlruns/mlflow.db')" || true
+# the experiments' page in the model-training view (party marks its experiments
+# mlflow.experimentKind=custom_model_development); the sidebar's GenAI / Model training switch
+# is remembered by the browser
+if [ -x "$PY" ] && [ -f mlruns/mlflow.db ]; then
+  "$PY" - "$PWD/mlruns/mlflow.db" "${PORT:-5000}" <<'PYEOF' || true
+import sqlite3, sys
+rows = sqlite3.connect(sys.argv[1]).execute(
+    "SELECT experiment_id, name FROM experiments WHERE lifecycle_stage = 'active' AND name != 'Default'").fetchall()
+for eid, name in rows:
+    print(f"experiment {name}: http://127.0.0.1:{sys.argv[2]}/#/experiments/{eid}/runs")
+PYEOF
+fi
 exec "$MLFLOW" ui --backend-store-uri "sqlite:///$PWD/mlruns/mlflow.db" \
   --default-artifact-root "$PWD/mlruns/artifacts" --host 127.0.0.1 --port "${PORT:-5000}"

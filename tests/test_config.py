@@ -68,7 +68,11 @@ def test_stages_list_describes_each_and_help_does_not_start_hydra(capsys):
     from party.cli import available_stages, main
     assert main(["stages"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == len(available_stages()) and all(len(line.split(None, 1)) == 2 for line in lines)
+    described = [line for line in lines if not line.startswith(" ")]
+    assert len(described) == len(available_stages()) and all(len(line.split(None, 1)) == 2 for line in described)
+    text = "\n".join(lines)                       # inputs and outputs from dvc.yaml
+    assert "   in:  data/prepared, data/tokenizers/holistic" in text and "   out: data/tokens" in text
+    assert "out: data/eval/metrics.json, data/eval/tables.md, data/eval/report.html" in text
     assert main(["train_vqvae", "--help"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("party train_vqvae [key=value") and "vqvae.stream" in out

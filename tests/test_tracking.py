@@ -258,6 +258,32 @@ def test_review_notebook_runs(store, tmp_path):
     assert run.info.run_id in r.stdout and "samples/a.gif" in r.stdout
 
 
+def test_review_notebook_executes_as_a_notebook_with_embedded_motion(store, tmp_path):
+    """Executed by a Jupyter kernel (nbclient, as `pytest --nbmake` does): the GIF is embedded
+    as HTML (an exported notebook shows it), runs show their DVC experiment, and RUNNING or
+    FAILED runs are hidden unless asked for."""
+    import jupytext
+    from nbclient import NotebookClient
+
+    cfg = make_cfg(store, experiment="nb")
+    with tracking.start_run(cfg, "evaluate") as done:
+        joints = np.zeros((4, 22, 3))
+        joints[:, :, 1] = np.linspace(0, 1.7, 22)
+        tracking.log_video(joints, "samples/a.gif")
+    with pytest.raises(RuntimeError):
+        with tracking.start_run(cfg, "evaluate") as failed:
+            raise RuntimeError("boom")
+    nb = jupytext.read(REPO / "notebooks" / "review_runs.py")
+    nb.cells.insert(2, jupytext.reads(f"# %%\ntracking_uri = {tracking.tracking_uri(cfg)!r}\n"
+                                      "experiment = 'nb'\n", fmt="py:percent").cells[0])
+    NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    html = "".join(o.get("data", {}).get("text/html", "") for o in outputs)
+    assert 'src="data:image/gif;base64,' in html and "IPython.core.display.Image" not in html
+    assert done.info.run_id in html and failed.info.run_id not in html
+    assert "dvc_exp_name" in html
+
+
 def test_runs_do_not_export_the_store_to_later_runs(store, tmp_path):
     """mlflow.set_tracking_uri exports $MLFLOW_TRACKING_URI; a second stage with another
     store (in this process or a child) must not log into the first one."""
@@ -393,3 +419,12 @@ def test_runs_tell_apart_dvc_experiment_git_changes_and_resumes(tmp_path, monkey
     for r in (second, third):
         assert client.get_run(r.info.run_id).data.tags["mlflow.parentRunId"] == first.info.run_id
     assert client.get_run(third.info.run_id).data.tags["party.resumed_from"] == second.info.run_id
+
+
+def test_experiments_open_in_the_model_training_view(store):
+    from mlflow.tracking import MlflowClient
+    cfg = make_cfg(store, experiment="kind")
+    with tracking.start_run(cfg, "prepare"):
+        pass
+    exp = MlflowClient(tracking.tracking_uri(cfg)).get_experiment_by_name("kind")
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"

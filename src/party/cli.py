@@ -6,7 +6,7 @@
                                       the choices are kept in conf/local/choices.yaml
     party params --reset              forget the kept choices
     party params --check              fail if params.yaml is stale w.r.t. conf/
-    party stages                      list the stages
+    party stages                      list the stages, with their inputs and outputs (dvc.yaml)
     party sweep-status <out_dir>      a grid's points: done / running / failed / pending
 
 A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function (built
@@ -42,6 +42,29 @@ def stage_summary(stage: str) -> tuple[str, str]:
         first = first.split(":", 1)[1].strip()
     first = first.split(". ", 1)[0].replace("``", "").split(" (", 1)[0].rstrip(".")
     return first, doc
+
+
+def stage_io(dvc_yaml: Path = Path("dvc.yaml")) -> dict[str, tuple[list[str], list[str]]]:
+    """stage -> (data inputs, outputs) from ``dvc.yaml`` (code deps left out; ``foreach``
+    stages with ``${item}`` in their paths shown once, with ``<item>``)."""
+    import yaml
+    if not dvc_yaml.exists():
+        return {}
+    out: dict[str, tuple[list[str], list[str]]] = {}
+
+    def paths(entries):
+        for e in entries or []:
+            yield (next(iter(e)) if isinstance(e, dict) else str(e)).replace("${item}", "<item>")
+
+    for body in (yaml.safe_load(dvc_yaml.read_text()) or {}).get("stages", {}).values():
+        body = body.get("do", body)
+        words = str(body.get("cmd", "")).split()
+        if len(words) < 2 or words[0] != "party":
+            continue
+        ins, outs = out.setdefault(words[1], ([], []))
+        ins += [d for d in paths(body.get("deps")) if not d.startswith("src/") and d not in ins]
+        outs += [o for o in (*paths(body.get("outs")), *paths(body.get("metrics"))) if o not in outs]
+    return out
 
 
 def available_stages() -> list[str]:
@@ -246,8 +269,12 @@ def _main(argv: list[str] | None = None) -> int:
             return 0
         return cmd_params(rest)
     if cmd == "stages":
+        io = stage_io()
         for name in available_stages():
             print(f"{name:<20} {stage_summary(name)[0]}")
+            if name in io:
+                ins, outs = io[name]
+                print(f"{'':<20}   in:  {', '.join(ins) or '-'}\n{'':<20}   out: {', '.join(outs)}")
         return 0
     if cmd == "sweep-status":
         return cmd_sweep_status(rest)

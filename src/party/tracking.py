@@ -363,6 +363,11 @@ def relocate_store(uri: str) -> int:
         con.close()
 
 
+# the MLflow UI opens an experiment of this kind in its model-training view ("Training runs"),
+# not the GenAI one, and does not ask which kind it is
+EXPERIMENT_KIND, MODEL_TRAINING = "mlflow.experimentKind", "custom_model_development"
+
+
 def _experiment_id(name: str, uri: str) -> str:
     import mlflow
 
@@ -371,7 +376,10 @@ def _experiment_id(name: str, uri: str) -> str:
         client = mlflow.MlflowClient(uri)
         exp = client.get_experiment_by_name(name)
         if exp is None:
-            return client.create_experiment(name, artifact_location=artifact_location(uri))
+            return client.create_experiment(name, artifact_location=artifact_location(uri),
+                                            tags={EXPERIMENT_KIND: MODEL_TRAINING})
+        if EXPERIMENT_KIND not in exp.tags:
+            client.set_experiment_tag(exp.experiment_id, EXPERIMENT_KIND, MODEL_TRAINING)
     if exp.lifecycle_stage == "deleted":
         raise RuntimeError(f"MLflow experiment {name!r} in {uri} is deleted; restore it "
                            f"(`mlflow experiments restore`) or set tracking.experiment")

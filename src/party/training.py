@@ -85,11 +85,42 @@ def build_trainer(cfg, *, max_steps: int, logger=False, callbacks: Iterable = ()
     stages checkpoint with ``AtomicCheckpoint`` and export their outputs themselves."""
     import lightning as L
 
-    args = dict(max_steps=int(max_steps), logger=logger or False, callbacks=list(callbacks),
+    callbacks = list(callbacks)
+    if cfg.progress and int(max_steps) > 0:
+        callbacks.append(_step_progress_bar_cls()())
+    args = dict(max_steps=int(max_steps), logger=logger or False, callbacks=callbacks,
                 enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
                 enable_progress_bar=bool(cfg.progress), **trainer_kwargs(cfg, section))
     args.update(kw)
     return L.Trainer(**args)
+
+
+def _step_progress_bar_cls():
+    from lightning.pytorch.callbacks import TQDMProgressBar
+    from lightning.pytorch.callbacks.progress.tqdm_progress import _update_n
+
+    class StepProgressBar(TQDMProgressBar):
+        """The training bar counts optimizer steps up to ``max_steps`` (every stage trains for a
+        number of steps; Lightning's bar counts batches of an epoch, ``Epoch 1/-2``)."""
+
+        def on_train_epoch_start(self, trainer, *_):
+            bar = self.train_progress_bar
+            if bar.total != trainer.max_steps:
+                bar.reset(total=trainer.max_steps)
+                _update_n(bar, trainer.global_step)
+            bar.set_description(f"step (epoch {trainer.current_epoch})")
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            n = trainer.global_step
+            if self._should_update(n, self.train_progress_bar.total):
+                _update_n(self.train_progress_bar, n)
+                self.train_progress_bar.set_postfix(self.get_metrics(trainer, pl_module))
+
+        def on_train_epoch_end(self, trainer, pl_module):
+            if not self.train_progress_bar.disable:
+                self.train_progress_bar.set_postfix(self.get_metrics(trainer, pl_module))
+
+    return StepProgressBar
 
 
 def _atomic_checkpoint_cls():
