@@ -153,8 +153,29 @@ def test_queued_experiment_keeps_the_choices_and_shows_its_metrics(pipeline):
     got = data["params"]["params.yaml"]["data"]
     assert got["eval"]["replications"] == reps
     assert got["dataset"] == params["dataset"] and got["vqvae"] == params["vqvae"]   # the choice kept
-    top1 = data["metrics"]["metrics/eval/ground_truth.json"]["data"]["holistic"]["top1"]
-    assert 0 < top1 <= 1
+    mm_dist = data["metrics"]["metrics/eval/ground_truth.json"]["data"]["holistic"]["mm_dist"]
+    assert mm_dist > 0                     # (the tiny test split is too small for R-Precision's batches)
     with sqlite3.connect(work / "mlruns/mlflow.db") as con:             # the run logged in the main store
         names = {v for (v,) in con.execute("select value from tags where key = 'party.dvc_exp_name'")}
     assert "more-reps" in names
+
+
+@pytest.mark.slow
+def test_registered_generator_generates_with_nothing_else(pipeline, tmp_path):
+    """`party register` makes ParTY one MLflow model version; a folder holding only params.yaml
+    and a copy of the store (no data/, no conf/) generates from `models:/<name>/<version>`."""
+    import re
+
+    work, env, _ = pipeline
+    reg = _sh([str(BIN / "party"), "register"], work, env)
+    uri = re.search(r"models:/\S+/\d+", reg.stdout).group(0)
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    shutil.copy2(work / "params.yaml", other / "params.yaml")
+    shutil.copytree(work / "mlruns", other / "mlruns")
+    _sh([str(BIN / "party"), "generate", f"generator.generate.run={uri}",
+         "generator.generate.texts=[a person waves with the left hand]", "generator.generate.frames=[48]",
+         f"generator.generate.out={other / 'out'}"], other, env | {"DVC_ROOT": ""})
+    listed = json.loads((other / "out" / "generated.json").read_text())
+    assert listed[0]["frames"] == 48 and Path(listed[0]["gif"]).is_file() and Path(listed[0]["bvh"]).is_file()
+    assert not (other / "data").exists()

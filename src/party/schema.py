@@ -687,6 +687,11 @@ class GenGenerate:
 
 
 @dataclass
+class GenRegistry:
+    name: str = MISSING
+
+
+@dataclass
 class Generator:
     method: str = MISSING
     methods: Dict[str, GenMethod] = MISSING
@@ -702,6 +707,7 @@ class Generator:
     optim: GenOptim = _group(GenOptim)
     train: GenTrain = _group(GenTrain)
     generate: GenGenerate = _group(GenGenerate)
+    registry: GenRegistry = _group(GenRegistry)
     ablation: GenAblation = _group(GenAblation)
 
 

@@ -24,6 +24,7 @@ import torch
 from tqdm import tqdm
 
 from party.generator.data import crop_lengths
+from party.generator.package import decoder_streams
 from party.io import atomic_dir, write_json
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,7 @@ class Decoder:
         from party.tokenizers import load_tokenizer
         self.kind, self.layout = kind, ctx.layout
         whole = ctx.layout.whole_stream
-        need = [whole] if kind != "partwise" else [s for s in streams if s != whole]
+        need = decoder_streams(kind, streams, whole)
         self.toks = {s: load_tokenizer(Path(tokenizers_dir) / s).eval() for s in need}
         self.mean = np.asarray(ctx.normalizer.mean, dtype=np.float32)
         self.whole = whole
@@ -151,11 +152,17 @@ def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Se
     bad = [i for i, t in enumerate(texts) if not str(t).strip()]
     if bad:
         raise ValueError(f"generate.texts: text {bad[0]} is empty")
-    model, meta = load_generator(method_dir)
-    if model.spec.kind == "random":
-        raise ValueError(f"{method_dir}: the random-codes baseline does not read texts; pick a trained method")
-    ctx = load_context(cfg)
-    emb = embed_texts(cfg, list(texts))
+    from party.generator.package import is_package, load_package
+
+    if is_package(method_dir):            # a registered model: nothing else is read
+        model, meta, ctx, tokenizers_dir, text_cfg, info = load_package(method_dir)
+        emb = encode_texts(text_cfg, info["encoder_id"], list(texts))
+    else:
+        model, meta = load_generator(method_dir)
+        if model.spec.kind == "random":
+            raise ValueError(f"{method_dir}: the random-codes baseline does not read texts; pick a trained method")
+        ctx, tokenizers_dir = load_context(cfg), meta["tokenizers_dir"]
+        emb = embed_texts(cfg, list(texts))
     lengths = None
     if frames is not None and any(f is not None for f in frames):
         lengths = {}
@@ -169,7 +176,7 @@ def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Se
             if any(x is None for x in n):
                 raise ValueError("generate.frames: give a length for every text or none")
             lengths[s] = torch.tensor(n)
-    decode = Decoder(meta["tokenizers_dir"], model.spec.kind, ctx, meta["streams"])
+    decode = Decoder(tokenizers_dir, model.spec.kind, ctx, meta["streams"])
     feats = generate_batches(model, emb, lengths, cfg.generator.generate, decode, progress)
     out = []
     for i, (t, f) in enumerate(zip(texts, feats)):
@@ -178,6 +185,16 @@ def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Se
         out.append({"text": t, "frames": int(len(f)), **{k: str(v) for k, v in paths.items()}})
     write_json(Path(out_dir) / "generated.json", out)
     return out
+
+
+def encode_texts(text_cfg, encoder_id: str, texts: list[str]) -> np.ndarray:
+    """``texts`` through the encoder of ``text_cfg``, which must be ``encoder_id``."""
+    from party.text.encoders import build_text_encoder
+
+    enc = build_text_encoder(text_cfg)
+    if enc.id != encoder_id:
+        raise ValueError(f"text encoder {enc.id} differs from the model's {encoder_id}")
+    return enc.encode(texts).numpy().astype(np.float32)
 
 
 def embed_texts(cfg, texts: list[str]) -> np.ndarray:

@@ -9,8 +9,9 @@ Two uses, one stage:
   ``generator.generate.texts_file=prompts.txt``, lines ``text`` or ``text | frames``):
   per text, under ``generator.generate.out``: features and joints (``.npy``), a stick-figure
   GIF titled with the text and a BVH file (SMPL-22 hierarchy, the dataset's fps). The model
-  is ``generator.generate.run`` (a folder, or an MLflow URI ``runs:/<id>/generator``), else
-  ``<generator.out_dir>/<method>``.
+  is ``generator.generate.run`` (a folder, an MLflow URI ``runs:/<id>/generator``, or a
+  registered model ``models:/<name>/<version>`` from ``party register``, which needs nothing
+  else), else ``<generator.out_dir>/<method>``.
 """
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ def resolve_run(cfg, spec: str | None, default: Path) -> Path:
     """A generator folder from ``generator.generate.run`` (a path or an MLflow artifact URI)."""
     if not spec:
         return default
-    if "://" in str(spec) or str(spec).startswith("runs:/"):
+    if "://" in str(spec) or str(spec).startswith(("runs:/", "models:/")):
         import mlflow
 
         from party.tracking import tracking_uri
