@@ -92,7 +92,7 @@ def test_cli_params_names_the_key(tmp_path):
 # --------------------------------------------------------------------------- what validates
 
 def test_schema_covers_every_group_and_is_a_structured_config():
-    groups = {p.name for p in CONF.iterdir() if p.is_dir()} - {"experiment", "sweep", "hydra"}
+    groups = {p.name for p in CONF.iterdir() if p.is_dir()} - {"experiment", "sweep", "hydra", "local"}
     assert groups == set(SCHEMA_GROUPS)
     OmegaConf.structured(Config)            # registrable in Hydra's ConfigStore
 

@@ -192,6 +192,8 @@ def cmd_params(argv: list[str]) -> int:
         except BaseException:                     # a bad choice is not kept
             if before is None:
                 path.unlink(missing_ok=True)
+                if path.parent.is_dir() and not any(path.parent.iterdir()):
+                    path.parent.rmdir()
             else:
                 path.write_bytes(before)
             raise

@@ -146,6 +146,8 @@ def persist_choices(overrides: Sequence[str], config_dir: str | Path = "conf",
     values = _prune(values)
     if not groups and not values:
         path.unlink(missing_ok=True)
+        if path.parent.is_dir() and not any(path.parent.iterdir()):
+            path.parent.rmdir()
         return None
     body = {"defaults": [{f"override /{g}": c} for g, c in groups.items()]} if groups else {}
     body.update(values)
