@@ -173,7 +173,8 @@ one), which every composition of conf/ reads, so `dvc exp run -S k=v` changes on
 def cmd_params(argv: list[str]) -> int:
     from hydra.errors import MissingConfigException
 
-    from party.config import CHOICES, choices_as_overrides, params_stale, persist_choices, write_params
+    from party.config import (CHOICES, choices_as_overrides, params_stale, persist_choices, remove_choices,
+                              write_params)
     check, reset = "--check" in argv, "--reset" in argv
     overrides = [a for a in argv if a not in ("--check", "--reset")]
     try:
@@ -191,9 +192,7 @@ def cmd_params(argv: list[str]) -> int:
             write_params("params.yaml")
         except BaseException:                     # a bad choice is not kept
             if before is None:
-                path.unlink(missing_ok=True)
-                if path.parent.is_dir() and not any(path.parent.iterdir()):
-                    path.parent.rmdir()
+                remove_choices(path)
             else:
                 path.write_bytes(before)
             raise

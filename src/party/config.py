@@ -145,14 +145,19 @@ def persist_choices(overrides: Sequence[str], config_dir: str | Path = "conf",
             node[leaf] = _plain_value(o.value())
     values = _prune(values)
     if not groups and not values:
-        path.unlink(missing_ok=True)
-        if path.parent.is_dir() and not any(path.parent.iterdir()):
-            path.parent.rmdir()
+        remove_choices(path)
         return None
     body = {"defaults": [{f"override /{g}": c} for g, c in groups.items()]} if groups else {}
     body.update(values)
     write_text(path, _CHOICES_HEADER + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
     return path
+
+
+def remove_choices(path: Path) -> None:
+    """Delete the persisted-choices file, and its folder when that is left empty."""
+    path.unlink(missing_ok=True)
+    if path.parent.is_dir() and not any(path.parent.iterdir()):
+        path.parent.rmdir()
 
 
 def _prune(node: dict) -> dict:

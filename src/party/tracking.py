@@ -393,12 +393,10 @@ def _experiment_id(name: str, uri: str) -> str:
 def process_key(pid: int) -> str | None:
     """``"<pid>:<start time>"`` of a live process (Linux ``/proc``; ``"<pid>"`` elsewhere), or
     None when it is gone: a reused pid has another start time, so it is not mistaken for it."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+    from party.io import pid_alive
+
+    if not pid_alive(pid):
         return None
-    except PermissionError:
-        pass
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
