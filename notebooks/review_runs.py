@@ -37,11 +37,15 @@ import os
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
+import matplotlib
 import mlflow
 import pandas as pd
 from IPython.display import HTML, Video, display
 
 from party import tracking
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 
 def project_root(start: Path) -> Path:
@@ -128,6 +132,38 @@ if len(runs) and "tags.mlflow.parentRunId" in runs.columns:
                                            *[c for c in metric_cols if group[c].notna().any()]]])
 else:
     print("no nested runs")
+
+# %% [markdown]
+# ## Ablation grids: one table and one chart per sweep
+# `party vq_ablation` / `party gen_ablation` log each grid point as a child run tagged
+# `party.sweep` and `party.sweep_point`; the point's params are the config it trained with.
+# Rows: points; columns: the params that vary across the grid and the point's metrics; the
+# chart shows `chart_metric` (with its `_ci95` as error bars when logged).
+
+# %%
+chart_metrics = ["top1", "fid", "val/mpjpe_mm", "val_loss"]   # the first one a grid logged is charted
+points = runs[runs["tags.party.sweep_point"].notna()] if len(runs) and "tags.party.sweep_point" in runs.columns else runs.iloc[0:0]
+for sweep, grid in points.groupby("tags.party.sweep"):
+    grid = grid.sort_values("start_time").drop_duplicates("tags.party.sweep_point", keep="last")
+    varying = [c for c in param_cols if grid[c].astype(str).nunique() > 1]
+    cols = [c for c in metric_cols if grid[c].notna().any()]
+    table = grid.set_index("tags.party.sweep_point")[varying + cols].rename(columns=lambda c: c.split(".", 1)[1])
+    print(f"\nsweep {sweep}: {len(grid)} point(s)")
+    display(table)
+    metric = next((m for m in chart_metrics if f"metrics.{m}" in grid.columns and grid[f"metrics.{m}"].notna().any()), None)
+    if metric:
+        err = grid.get(f"metrics.{metric}_ci95")
+        fig, ax = plt.subplots(figsize=(1.5 + 0.9 * len(grid), 3.0))
+        ax.bar(grid["tags.party.sweep_point"], grid[f"metrics.{metric}"],
+               yerr=None if err is None else err.fillna(0), capsize=3)
+        ax.set_ylabel(metric + (" (95% CI)" if err is not None else ""))
+        ax.set_title(f"{sweep}")
+        ax.tick_params(axis="x", labelrotation=30, labelsize=7)
+        fig.tight_layout()
+        display(fig)
+        plt.close(fig)
+if not len(points):
+    print("no sweep points yet (party gen_ablation / vq_ablation)")
 
 # %% [markdown]
 # ## Newest logged sample video

@@ -8,6 +8,7 @@
     party params --check              fail if params.yaml is stale w.r.t. conf/
     party stages                      list the stages, with their inputs and outputs (dvc.yaml)
     party sweep-status <out_dir>      a grid's points: done / running / failed / pending
+    party repro [-j N] [stage ...]    dvc repro with up to N independent stages at once
 
 A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function (built
 with ``party.stage.stage``); it runs as a Hydra app whose primary config is
@@ -279,6 +280,9 @@ def _main(argv: list[str] | None = None) -> int:
         return 0
     if cmd == "sweep-status":
         return cmd_sweep_status(rest)
+    if cmd == "repro":
+        from party.repro import main as repro_main
+        return repro_main(rest)
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2

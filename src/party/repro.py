@@ -1,0 +1,195 @@
+"""``party repro -j N [target ...]``: the DVC pipeline with independent stages side by side.
+
+``dvc repro`` runs one stage at a time. Many stages of ``dvc.yaml`` do not depend on each
+other (after ``prepare``: the three tokenizers, the three evaluators and the text embeddings;
+after ``extract_tokens``: every generator), and on a small CPU machine two 1-thread processes
+do about twice the work of one 2-thread process for models of this size (``bench/bench_threads.py``).
+This runs each stage as its own ``dvc --wait-for-lock repro --single-item <stage>``, DVC's
+documented way to run stages in parallel (per-path read/write locks; the repo lock is held only
+while a stage is collected and committed), as soon as every stage it depends on has finished,
+at most N at a time, longest remaining path first (the previous run's stage times, when known).
+So DVC still decides what is changed and records every stage in ``dvc.lock``; a stage that did
+not change is skipped by DVC as in ``dvc repro``.
+
+Each child gets ``OMP_NUM_THREADS`` = cores // N (unless set), which the stages' ``threads: null``
+keys leave to torch. With N > 1 every stage's output goes to ``logs/repro/<stage>.log`` (its tail is
+printed when it fails); with N = 1 it streams to the console. ``logs/repro/summary.json`` keeps the
+per-stage wall times of the last run. A failed stage stops new launches (running ones finish), as
+``dvc repro`` does; ``--keep-going`` runs every stage that does not depend on it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+LOG_DIR = Path("logs/repro")
+SKIPPED_MARK = "didn't change, skipping"
+OK = ("ran", "unchanged", "done")       # done: finished with -j 1 (DVC's output went to the console)
+
+
+def stage_graph(root: Path = Path(".")) -> dict[str, list[str]]:
+    """stage -> the stages it depends on, as DVC's index sees ``dvc.yaml`` (foreach items by address)."""
+    from dvc.repo import Repo
+    with Repo(str(root)) as repo:
+        g = repo.index.graph
+        return {s.addressing: sorted(d.addressing for d in g.successors(s)) for s in g.nodes}
+
+
+def select(graph: dict[str, list[str]], targets: list[str]) -> dict[str, list[str]]:
+    """The targets (a stage, or a foreach group's name for all its items) and everything upstream."""
+    if not targets:
+        return graph
+    want, todo = set(), []
+    for t in targets:
+        hits = [s for s in graph if s == t or s.startswith(t + "@")]
+        if not hits:
+            raise SystemExit(f"party repro: no stage {t!r} in dvc.yaml; stages: {', '.join(graph)}")
+        todo += hits
+    while todo:
+        s = todo.pop()
+        if s not in want:
+            want.add(s)
+            todo += graph[s]
+    return {s: [d for d in deps if d in want] for s, deps in graph.items() if s in want}
+
+
+def priorities(graph: dict[str, list[str]], cost: dict[str, float]) -> dict[str, float]:
+    """Longest path from each stage to the end of the pipeline, each stage weighted by its cost
+    (1 when unknown): the stage that holds up the most work starts first."""
+    users = {s: [u for u, deps in graph.items() if s in deps] for s in graph}
+    memo: dict[str, float] = {}
+
+    def longest(s: str) -> float:
+        if s not in memo:
+            memo[s] = cost.get(s, 1.0) + max((longest(u) for u in users[s]), default=0.0)
+        return memo[s]
+    return {s: longest(s) for s in graph}
+
+
+def previous_times(log_dir: Path) -> dict[str, float]:
+    f = log_dir / "summary.json"
+    try:
+        return {s: r["seconds"] for s, r in json.loads(f.read_text())["stages"].items()
+                if r["status"] == "ran"}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def child_env(jobs: int) -> dict[str, str]:
+    env = dict(os.environ)
+    threads = str(max(1, (os.cpu_count() or 1) // jobs))
+    for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(k, threads)
+    if jobs > 1:
+        env.setdefault("TQDM_MININTERVAL", "30")   # progress bars go to a log file: fewer redraws
+    return env
+
+
+def _tail(path: Path, n: int = 30) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").replace("\r", "\n").splitlines()[-n:])
+    except OSError:
+        return ""
+
+
+def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: str = "dvc",
+        log_dir: Path = LOG_DIR, extra: list[str] | None = None) -> dict:
+    """Run every stage of ``graph`` (stage -> deps) through DVC, at most ``jobs`` at a time.
+    Returns {"stages": {stage: {"status", "seconds"}}, "seconds": wall}; status is ran, unchanged,
+    done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    prio = priorities(graph, previous_times(log_dir))
+    env = child_env(jobs)
+    pending = set(graph)
+    running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
+    result: dict[str, dict] = {}
+    failed = False
+    t0 = time.monotonic()
+    try:
+        while pending or running:
+            if not failed or keep_going:
+                for s in sorted(pending, key=lambda s: -prio[s]):
+                    if len(running) >= jobs:
+                        break
+                    if any(result.get(d, {}).get("status") in ("failed", "blocked") for d in graph[s]):
+                        pending.discard(s)
+                        result[s] = {"status": "blocked", "seconds": 0.0}
+                        print(f"party repro: {s}: not run ({', '.join(graph[s])} failed)", flush=True)
+                        continue
+                    if all(result.get(d, {}).get("status") in OK for d in graph[s]):
+                        pending.discard(s)
+                        log = log_dir / f"{s}.log"
+                        out = open(log, "w") if jobs > 1 else None
+                        cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
+                        running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
+                                                       if out else None), time.monotonic(), log, out)
+                        print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
+            elif not running:
+                for s in pending:
+                    result[s] = {"status": "not started", "seconds": 0.0}
+                break
+            if not running:
+                if pending:      # nothing runnable and nothing running: the rest is blocked
+                    continue
+                break
+            time.sleep(0.5)
+            for s, (p, start, log, out) in list(running.items()):
+                if p.poll() is None:
+                    continue
+                secs = round(time.monotonic() - start, 1)
+                if out:
+                    out.close()
+                del running[s]
+                if p.returncode != 0:
+                    failed = True
+                    result[s] = {"status": "failed", "seconds": secs}
+                    tail = _tail(log) if jobs > 1 else ""
+                    print(f"party repro: {s}: FAILED after {secs:.0f} s (exit {p.returncode})"
+                          + (f"; last lines of {log}:\n{tail}" if tail else ""), file=sys.stderr, flush=True)
+                    continue
+                status = "done" if jobs == 1 else (
+                    "unchanged" if SKIPPED_MARK in log.read_text(errors="replace") else "ran")
+                result[s] = {"status": status, "seconds": secs}
+                print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
+    except KeyboardInterrupt:
+        for s, (p, *_rest) in running.items():
+            p.send_signal(signal.SIGTERM)     # stages end their MLflow runs KILLED on SIGTERM
+            result[s] = {"status": "failed", "seconds": 0.0}
+        for p, *_rest in running.values():
+            p.wait()
+        raise
+    summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1),
+               "stages": {s: result[s] for s in graph if s in result}}
+    (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def table(summary: dict) -> str:
+    rows = [f"{'stage':<28} {'status':<12} {'seconds':>8}"]
+    rows += [f"{s:<28} {r['status']:<12} {r['seconds']:>8.1f}" for s, r in summary["stages"].items()]
+    rows.append(f"{'total (wall)':<28} {'':<12} {summary['seconds']:>8.1f}")
+    return "\n".join(rows)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="party repro", description=__doc__.split("\n\n")[0])
+    ap.add_argument("targets", nargs="*", help="stages (or foreach groups) to reproduce with what they depend on; default: all")
+    ap.add_argument("-j", "--jobs", type=int, default=1, help="stages run at once (default 1: as dvc repro)")
+    ap.add_argument("-k", "--keep-going", action="store_true", help="after a failure, still run what does not depend on it")
+    ap.add_argument("-f", "--force", action="store_true", help="rerun every selected stage (dvc repro --force)")
+    a = ap.parse_args(argv)
+    if a.jobs < 1:
+        ap.error("--jobs must be at least 1")
+    if not Path("dvc.yaml").is_file():
+        print("party repro: no dvc.yaml here; run it in the project's root", file=sys.stderr)
+        return 2
+    graph = select(stage_graph(), a.targets)
+    summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None)
+    print(table(summary))
+    return 0 if all(r["status"] in OK for r in summary["stages"].values()) else 1

@@ -1,0 +1,99 @@
+"""``party repro -j N``: stages start only after what they depend on, independent ones overlap,
+a failure blocks its dependents, DVC's "didn't change" is reported as unchanged. A fake ``dvc``
+executable stands in for DVC here; tests/test_pipeline.py runs the real one."""
+import json
+import os
+import sys
+import textwrap
+
+import pytest
+
+from party import repro
+
+FAKE = textwrap.dedent("""\
+    import json, os, sys, time
+    assert sys.argv[1:4] == ["--wait-for-lock", "repro", "--single-item"], sys.argv
+    stage = sys.argv[4]
+    spec = json.load(open(os.environ["FAKE_SPEC"]))
+    with open(os.environ["FAKE_TRACE"], "a") as f:
+        f.write(json.dumps([stage, "start", time.time(), os.environ.get("OMP_NUM_THREADS")]) + "\\n")
+    time.sleep(spec.get("sleep", {}).get(stage, 0.3))
+    if stage in spec.get("unchanged", []):
+        print(f"Stage '{stage}' didn't change, skipping")
+    else:
+        print(f"Running stage '{stage}':")
+    with open(os.environ["FAKE_TRACE"], "a") as f:
+        f.write(json.dumps([stage, "end", time.time(), None]) + "\\n")
+    sys.exit(3 if stage in spec.get("fail", []) else 0)
+""")
+GRAPH = {"a": [], "b": ["a"], "c": ["a"], "d": ["b", "c"], "e": ["a"]}
+
+
+@pytest.fixture
+def fake(tmp_path, monkeypatch):
+    script = tmp_path / "dvc"
+    script.write_text(f"#!{sys.executable}\n" + FAKE)
+    script.chmod(0o755)
+    trace = tmp_path / "trace.jsonl"
+    monkeypatch.setenv("FAKE_TRACE", str(trace))
+    monkeypatch.setenv("FAKE_SPEC", str(tmp_path / "spec.json"))
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+
+    def go(spec, jobs, graph=GRAPH, **kw):
+        (tmp_path / "spec.json").write_text(json.dumps(spec))
+        trace.write_text("")
+        summary = repro.run(graph, jobs, dvc=str(script), log_dir=tmp_path / "logs", **kw)
+        events = [json.loads(x) for x in trace.read_text().splitlines()]
+        return summary, {(s, k): t for s, k, t, _ in events}, events
+    return go
+
+
+def test_independent_stages_overlap_and_wait_for_their_inputs(fake, tmp_path):
+    summary, t, events = fake({"sleep": {"b": 1.0, "c": 1.0}, "unchanged": ["e"]}, jobs=2)
+    st = {s: r["status"] for s, r in summary["stages"].items()}
+    assert st == {"a": "ran", "b": "ran", "c": "ran", "d": "ran", "e": "unchanged"}
+    for s, deps in GRAPH.items():
+        for d in deps:
+            assert t[(s, "start")] >= t[(d, "end")], (s, d)
+    assert t[("b", "start")] < t[("c", "end")] and t[("c", "start")] < t[("b", "end")]   # side by side
+    assert {e[3] for e in events if e[1] == "start"} == {str(max(1, (os.cpu_count() or 1) // 2))}
+    assert (tmp_path / "logs" / "b.log").read_text().startswith("Running stage 'b'")
+    saved = json.loads((tmp_path / "logs" / "summary.json").read_text())
+    assert saved["stages"]["b"]["seconds"] >= 1.0 and saved["jobs"] == 2
+
+
+def test_never_more_than_jobs_at_once(fake):
+    graph = {s: [] for s in "pqrst"}
+    _, t, _ = fake({"sleep": {s: 0.4 for s in graph}}, jobs=2, graph=graph)
+    for s in graph:                      # at any stage's start, at most one other is running
+        at = t[(s, "start")]
+        assert sum(t[(o, "start")] <= at < t[(o, "end")] for o in graph if o != s) <= 1
+
+
+def test_a_failure_blocks_what_depends_on_it(fake, capsys):
+    summary, t, _ = fake({"fail": ["b"], "sleep": {"c": 1.0}}, jobs=2)
+    st = {s: r["status"] for s, r in summary["stages"].items()}
+    assert st["b"] == "failed" and st["d"] in ("blocked", "not started") and ("d", "start") not in t
+    assert st["c"] == "ran"                       # already running: allowed to finish
+    assert "b: FAILED" in capsys.readouterr().err
+    summary, t, _ = fake({"fail": ["b"]}, jobs=1, keep_going=True)
+    st = {s: r["status"] for s, r in summary["stages"].items()}
+    assert st["d"] == "blocked" and st["c"] == st["e"] == "done"
+
+
+def test_targets_select_upstream_and_longest_path_starts_first():
+    assert set(repro.select(GRAPH, ["d"])) == {"a", "b", "c", "d"}
+    g = {"prep": [], "tok@x": ["prep"], "tok@y": ["prep"], "ev": ["prep"], "gen": ["tok@x", "tok@y"],
+         "end": ["gen", "ev"]}
+    assert set(repro.select(g, ["tok"])) == {"prep", "tok@x", "tok@y"}
+    with pytest.raises(SystemExit, match="no stage 'nope'"):
+        repro.select(g, ["nope"])
+    p = repro.priorities(g, {"ev": 100.0, "gen": 5.0})
+    assert p["ev"] > p["tok@x"]          # known to be long: first
+    p = repro.priorities(g, {})
+    assert p["tok@x"] > p["ev"]          # unknown costs: more stages downstream first
+
+
+def test_main_refuses_outside_a_project(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert repro.main(["-j", "2"]) == 2 and "no dvc.yaml" in capsys.readouterr().err
