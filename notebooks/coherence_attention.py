@@ -47,20 +47,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from party import tracking  # noqa: E402
-from party.config import load_params  # noqa: E402
+from party.config import open_project  # noqa: E402
 from party.generator.figures import gate_figure, gate_ratios  # noqa: E402
 
 
-def project_root(start: Path) -> Path:
-    for d in [start, *start.parents]:
-        if (d / "params.yaml").is_file() and (d / "dvc.yaml").is_file():
-            return d
-    raise FileNotFoundError(f"no params.yaml + dvc.yaml in {start} or above: set `project`")
-
-
-root = Path(project).resolve() if project else project_root(Path.cwd().resolve())
-os.chdir(root)
-cfg = load_params(root / "params.yaml")
+root, cfg = open_project(project)   # also makes the project the working dir
 metrics_file = Path(cfg.eval.out_dir) / "metrics.json"
 results = json.loads(metrics_file.read_text())["results"]
 print(f"{metrics_file}: sources {list(results)}")

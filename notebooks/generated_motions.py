@@ -31,8 +31,6 @@ runs = None         # generated run names to show (default: every one)
 
 # %%
 import base64
-import os
-from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -42,7 +40,7 @@ from IPython.display import HTML, display
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from party.config import load_params  # noqa: E402
+from party.config import open_project  # noqa: E402
 from party.data.context import load_context  # noqa: E402
 from party.evaluation.html import animations, sample_clips  # noqa: E402
 from party.evaluation.protocol import motion_joints  # noqa: E402
@@ -50,16 +48,7 @@ from party.evaluation.sources import GeneratedSource, discover_generated  # noqa
 from party.motion import get_skeleton  # noqa: E402
 
 
-def project_root(start: Path) -> Path:
-    for d in [start, *start.parents]:
-        if (d / "params.yaml").is_file() and (d / "dvc.yaml").is_file():
-            return d
-    raise FileNotFoundError(f"no params.yaml + dvc.yaml in {start} or above: set `project`")
-
-
-root = Path(project).resolve() if project else project_root(Path.cwd().resolve())
-os.chdir(root)                     # params.yaml paths are relative to the project
-cfg = load_params(root / "params.yaml")
+root, cfg = open_project(project)   # also makes the project the working dir
 ctx = load_context(cfg)
 split = cfg.generator.generate.split
 folders = discover_generated("auto", cfg.eval.sources.generated_dir)

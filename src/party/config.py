@@ -205,3 +205,16 @@ def params_stale(path: str | Path = "params.yaml", config_dir: str | Path = "con
     walk(want, have)
     return diffs
 
+
+
+def open_project(project: str | Path | None = None) -> tuple[Path, DictConfig]:
+    """(root, params) of a project for notebooks: ``project``, else the first folder at or above
+    the working dir holding ``params.yaml`` and ``dvc.yaml``; the working dir becomes the root
+    (params.yaml paths are relative to it)."""
+    start = Path(project or os.getcwd()).resolve()
+    root = start if project else next(
+        (d for d in [start, *start.parents] if (d / "params.yaml").is_file() and (d / "dvc.yaml").is_file()), None)
+    if root is None:
+        raise FileNotFoundError(f"no params.yaml + dvc.yaml in {start} or above: set `project`")
+    os.chdir(root)
+    return root, load_params(root / "params.yaml")
