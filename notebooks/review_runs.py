@@ -142,8 +142,9 @@ else:
 
 # %%
 chart_metrics = ["top1", "fid", "val/mpjpe_mm", "val_loss"]   # the first one a grid logged is charted
-points = runs[runs["tags.party.sweep_point"].notna()] if len(runs) and "tags.party.sweep_point" in runs.columns else runs.iloc[0:0]
-for sweep, grid in points.groupby("tags.party.sweep"):
+sweep_tags = ["tags.party.sweep", "tags.party.sweep_point"]
+points = runs[runs[sweep_tags].notna().all(axis=1)] if set(sweep_tags) <= set(runs.columns) else runs.iloc[0:0]
+for sweep, grid in (points.groupby("tags.party.sweep") if len(points) else []):
     grid = grid.sort_values("start_time").drop_duplicates("tags.party.sweep_point", keep="last")
     varying = [c for c in param_cols if grid[c].astype(str).nunique() > 1]
     cols = [c for c in metric_cols if grid[c].notna().any()]
