@@ -41,7 +41,7 @@ import matplotlib
 import mlflow
 import numpy as np
 import pandas as pd
-from IPython.display import HTML, display
+from IPython.display import HTML, Image, display
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -49,6 +49,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from party import tracking  # noqa: E402
 from party.config import open_project  # noqa: E402
 from party.generator.figures import gate_figure, gate_ratios  # noqa: E402
+from party.render import figure_png  # noqa: E402
 
 
 root, cfg = open_project(project)   # also makes the project the working dir
@@ -74,8 +75,7 @@ if len(coh):
     ax.legend()
     ax.set_title("TC / SC per source")
     fig.tight_layout()
-    display(fig)
-    plt.close(fig)
+    display(Image(figure_png(fig, dpi=90)))
 
 # %% [markdown]
 # ## The generator's training figures
@@ -88,8 +88,11 @@ exp = client.get_experiment_by_name(cfg.tracking.experiment)
 runs = client.search_runs([exp.experiment_id],
                           f"tags.`party.stage` = 'train_generator' and tags.`party.method` = '{method}' "
                           "and attributes.status = 'FINISHED'",
-                          order_by=["attributes.start_time DESC"], max_results=1) if exp else []
-run = runs[0] if runs else None
+                          order_by=["attributes.start_time DESC"], max_results=50) if exp else []
+# the newest run that trained (and so logged the figures; a sweep point reused from the cache has
+# none), the pipeline's own before an ablation point (which may have HPF or PTG switched off)
+trained = [r for r in runs if any(k.startswith("val/") for k in r.data.metrics)]
+run = next((r for r in trained if "party.sweep" not in r.data.tags), trained[0] if trained else None)
 print(f"store {uri}: " + (f"run {run.info.run_id} ({run.info.run_name})" if run else f"no finished {method} run"))
 
 
@@ -131,7 +134,6 @@ ratios = gate_ratios(metrics, parts)
 if ratios:
     display(pd.DataFrame(ratios, index=[f"c'_{k + 1}" for k in range(len(next(iter(ratios.values()))))]).round(3))
     fig = gate_figure(ratios, f"PTG gate selection ratios ({method})")
-    display(fig)
-    plt.close(fig)
+    display(Image(figure_png(fig, dpi=90)))
 else:
     print("no gate metrics (PTG off, or no finished run)")

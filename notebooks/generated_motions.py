@@ -35,7 +35,7 @@ import base64
 import matplotlib
 import numpy as np
 import pandas as pd
-from IPython.display import HTML, display
+from IPython.display import HTML, Image, display
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -46,6 +46,7 @@ from party.evaluation.html import animations, sample_clips  # noqa: E402
 from party.evaluation.protocol import motion_joints  # noqa: E402
 from party.evaluation.sources import GeneratedSource, discover_generated  # noqa: E402
 from party.motion import get_skeleton  # noqa: E402
+from party.render import figure_png  # noqa: E402
 
 
 root, cfg = open_project(project)   # also makes the project the working dir
@@ -121,5 +122,4 @@ if shown:
     for ax in axes[-1]:
         ax.set_xlabel("s")
     fig.tight_layout()
-    display(fig)
-    plt.close(fig)
+    display(Image(figure_png(fig, dpi=90)))

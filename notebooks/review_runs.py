@@ -40,9 +40,10 @@ from urllib.parse import unquote, urlparse
 import matplotlib
 import mlflow
 import pandas as pd
-from IPython.display import HTML, Video, display
+from IPython.display import HTML, Image, Video, display
 
 from party import tracking
+from party.render import figure_png
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -161,8 +162,7 @@ for sweep, grid in (points.groupby("tags.party.sweep") if len(points) else []):
         ax.set_title(f"{sweep}")
         ax.tick_params(axis="x", labelrotation=30, labelsize=7)
         fig.tight_layout()
-        display(fig)
-        plt.close(fig)
+        display(Image(figure_png(fig, dpi=90)))
 if not len(points):
     print("no sweep points yet (party gen_ablation / vq_ablation)")
 

@@ -270,3 +270,16 @@ def _write_mp4(path: Path, frames: Iterator[np.ndarray], size: tuple[int, int], 
             writer.send(np.ascontiguousarray(f))
     finally:
         writer.close()
+
+
+def figure_png(fig, dpi: float = 80) -> bytes:
+    """A matplotlib figure as PNG bytes, the figure closed (report charts; notebooks show them with
+    ``IPython.display.Image``, which works whatever matplotlib backend the kernel runs)."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return buf.getvalue()

@@ -11,8 +11,9 @@ at most N at a time, longest remaining path first (the previous run's stage time
 So DVC still decides what is changed and records every stage in ``dvc.lock``; a stage that did
 not change is skipped by DVC as in ``dvc repro``.
 
-Each child gets ``OMP_NUM_THREADS`` = cores // N (unless set), which the stages' ``threads: null``
-keys leave to torch. With N > 1 every stage's output goes to ``logs/repro/<stage>.log`` (its tail is
+Each child gets ``OMP_NUM_THREADS`` = cores // (stages running when it starts, itself included,
+at most N) unless set, which the stages' ``threads: null`` keys leave to torch: a stage that runs
+alone gets every core. With N > 1 every stage's output goes to ``logs/repro/<stage>.log`` (its tail is
 printed when it fails); with N = 1 it streams to the console. ``logs/repro/summary.json`` keeps the
 per-stage wall times of the last run. A failed stage stops new launches (running ones finish), as
 ``dvc repro`` does; ``--keep-going`` runs every stage that does not depend on it.
@@ -81,9 +82,12 @@ def previous_times(log_dir: Path) -> dict[str, float]:
         return {}
 
 
-def child_env(jobs: int) -> dict[str, str]:
+def child_env(jobs: int, side_by_side: int | None = None) -> dict[str, str]:
+    """The environment of a stage started while ``side_by_side`` stages (itself included; default
+    ``jobs``) run: ``OMP_NUM_THREADS`` = cores // that, so a stage that runs alone (``prepare``,
+    ``extract_tokens``, ``evaluate`` of the default chain) gets every core."""
     env = dict(os.environ)
-    threads = str(max(1, (os.cpu_count() or 1) // jobs))
+    threads = str(max(1, (os.cpu_count() or 1) // max(1, min(jobs, side_by_side or jobs))))
     for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(k, threads)
     if jobs > 1:
@@ -105,7 +109,6 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     prio = priorities(graph, previous_times(log_dir))
-    env = child_env(jobs)
     pending = set(graph)
     running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
     result: dict[str, dict] = {}
@@ -114,22 +117,24 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     try:
         while pending or running:
             if not failed or keep_going:
+                ready = []
                 for s in sorted(pending, key=lambda s: -prio[s]):
-                    if len(running) >= jobs:
-                        break
                     if any(result.get(d, {}).get("status") in ("failed", "blocked") for d in graph[s]):
                         pending.discard(s)
                         result[s] = {"status": "blocked", "seconds": 0.0}
                         print(f"party repro: {s}: not run ({', '.join(graph[s])} failed)", flush=True)
-                        continue
-                    if all(result.get(d, {}).get("status") in OK for d in graph[s]):
-                        pending.discard(s)
-                        log = log_dir / f"{s}.log"
-                        out = open(log, "w") if jobs > 1 else None
-                        cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
-                        running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
-                                                       if out else None), time.monotonic(), log, out)
-                        print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
+                    elif all(result.get(d, {}).get("status") in OK for d in graph[s]):
+                        ready.append(s)
+                ready = ready[:max(0, jobs - len(running))]
+                env = child_env(jobs, len(running) + len(ready))
+                for s in ready:
+                    pending.discard(s)
+                    log = log_dir / f"{s}.log"
+                    out = open(log, "w") if jobs > 1 else None
+                    cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
+                    running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
+                                                   if out else None), time.monotonic(), log, out)
+                    print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
             elif not running:
                 for s in pending:
                     result[s] = {"status": "not started", "seconds": 0.0}

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import re
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+
+from party.render import figure_png
 
 #: (stream or 'coherence', metric, label, higher is better)
 CHART_METRICS = (("{whole}", "top1", "R-Precision Top 1 ({whole})", True),
@@ -117,10 +118,7 @@ def bar_charts(results: Mapping, whole_stream: str, part_streams: Sequence[str])
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=80)
 
 
 def sample_clips(ctx, generated: Sequence, split: str, n: int) -> list[dict]:
