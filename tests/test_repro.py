@@ -100,3 +100,15 @@ def test_targets_select_upstream_and_longest_path_starts_first():
 def test_main_refuses_outside_a_project(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert repro.main(["-j", "2"]) == 2 and "no dvc.yaml" in capsys.readouterr().err
+
+
+def test_a_fresh_checkout_orders_stages_by_the_expected_times(tmp_path):
+    """Without logs/repro/summary.json, repro.expected_seconds of params.yaml gives the order: the
+    long stage goes first although both paths have as many stages."""
+    params = tmp_path / "params.yaml"
+    params.write_text("repro:\n  expected_seconds: {slow: 600, quick: 20}\n")
+    assert repro.expected_times(params) == {"slow": 600.0, "quick": 20.0}
+    graph = {"a": [], "quick": ["a"], "slow": ["a"], "end": ["quick", "slow"]}
+    prio = repro.priorities(graph, repro.expected_times(params))
+    assert prio["slow"] > prio["quick"] and prio["a"] == max(prio.values())
+    assert repro.expected_times(tmp_path / "missing.yaml") == {}

@@ -7,7 +7,8 @@ do about twice the work of one 2-thread process for models of this size (``bench
 This runs each stage as its own ``dvc --wait-for-lock repro --single-item <stage>``, DVC's
 documented way to run stages in parallel (per-path read/write locks; the repo lock is held only
 while a stage is collected and committed), as soon as every stage it depends on has finished,
-at most N at a time, longest remaining path first (the previous run's stage times, when known).
+at most N at a time, longest remaining path first (the previous run's stage times, else
+``repro.expected_seconds`` of params.yaml, else 1 per stage).
 So DVC still decides what is changed and records every stage in ``dvc.lock``; a stage that did
 not change is skipped by DVC as in ``dvc repro``.
 
@@ -82,6 +83,15 @@ def previous_times(log_dir: Path) -> dict[str, float]:
         return {}
 
 
+def expected_times(params: Path = Path("params.yaml")) -> dict[str, float]:
+    """``repro.expected_seconds`` of params.yaml: the stage times a fresh checkout schedules by."""
+    import yaml
+    try:
+        return {str(k): float(v) for k, v in yaml.safe_load(params.read_text())["repro"]["expected_seconds"].items()}
+    except (OSError, KeyError, TypeError, AttributeError):
+        return {}
+
+
 def child_env(jobs: int, side_by_side: int | None = None) -> dict[str, str]:
     """The environment of a stage started while ``side_by_side`` stages (itself included; default
     ``jobs``) run: ``OMP_NUM_THREADS`` = cores // that, so a stage that runs alone (``prepare``,
@@ -108,7 +118,7 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     Returns {"stages": {stage: {"status", "seconds"}}, "seconds": wall}; status is ran, unchanged,
     done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    prio = priorities(graph, previous_times(log_dir))
+    prio = priorities(graph, {**expected_times(), **previous_times(log_dir)})
     pending = set(graph)
     running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
     result: dict[str, dict] = {}

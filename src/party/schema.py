@@ -714,6 +714,11 @@ class Generator:
 # --------------------------------------------------------------------------- root
 
 @dataclass
+class Repro:                                 # `party repro -j N`
+    expected_seconds: Dict[str, float] = MISSING   # stage -> wall time, until logs/repro/summary.json has one
+
+
+@dataclass
 class Config:
     seed: int = MISSING
     progress: bool = MISSING
@@ -728,6 +733,7 @@ class Config:
     evaluator: Evaluator = _group(Evaluator)
     eval: Eval = _group(Eval)
     generator: Generator = _group(Generator)
+    repro: Repro = _group(Repro)
 
 
 #: the config groups of conf/ and their schema
