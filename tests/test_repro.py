@@ -5,10 +5,14 @@ import json
 import os
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
+import yaml
 
 from party import repro
+
+ROOT = Path(__file__).resolve().parents[1]
 
 FAKE = textwrap.dedent("""\
     import json, os, sys, time
@@ -106,9 +110,15 @@ def test_a_fresh_checkout_orders_stages_by_the_expected_times(tmp_path):
     """Without logs/repro/summary.json, repro.expected_seconds of params.yaml gives the order: the
     long stage goes first although both paths have as many stages."""
     params = tmp_path / "params.yaml"
-    params.write_text("repro:\n  expected_seconds: {slow: 600, quick: 20}\n")
+    cfg = yaml.safe_load((ROOT / "params.yaml").read_text())
+    cfg["repro"]["expected_seconds"] = {"slow": 600, "quick": 20}
+    params.write_text(yaml.safe_dump(cfg))
     assert repro.expected_times(params) == {"slow": 600.0, "quick": 20.0}
     graph = {"a": [], "quick": ["a"], "slow": ["a"], "end": ["quick", "slow"]}
     prio = repro.priorities(graph, repro.expected_times(params))
     assert prio["slow"] > prio["quick"] and prio["a"] == max(prio.values())
     assert repro.expected_times(tmp_path / "missing.yaml") == {}
+    cfg["repro"]["expected_seconds"] = {"slow": "a while"}
+    params.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match=r"params\.yaml.*repro\.expected_seconds"):
+        repro.expected_times(params)          # bad input: named, not silently unordered

@@ -272,7 +272,7 @@ def _write_mp4(path: Path, frames: Iterator[np.ndarray], size: tuple[int, int], 
         writer.close()
 
 
-def figure_png(fig, dpi: float = 80) -> bytes:
+def figure_png(fig, dpi: float) -> bytes:
     """A matplotlib figure as PNG bytes, the figure closed (report charts; notebooks show them with
     ``IPython.display.Image``, which works whatever matplotlib backend the kernel runs)."""
     import io

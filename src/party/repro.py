@@ -84,20 +84,20 @@ def previous_times(log_dir: Path) -> dict[str, float]:
 
 
 def expected_times(params: Path = Path("params.yaml")) -> dict[str, float]:
-    """``repro.expected_seconds`` of params.yaml: the stage times a fresh checkout schedules by."""
-    import yaml
-    try:
-        return {str(k): float(v) for k, v in yaml.safe_load(params.read_text())["repro"]["expected_seconds"].items()}
-    except (OSError, KeyError, TypeError, AttributeError):
+    """``repro.expected_seconds`` of params.yaml (read and validated as every stage reads it): the
+    stage times a fresh checkout schedules by; none without a params.yaml."""
+    if not params.is_file():
         return {}
+    from party.config import load_params
+    return {str(k): float(v) for k, v in load_params(params).repro.expected_seconds.items()}
 
 
-def child_env(jobs: int, side_by_side: int | None = None) -> dict[str, str]:
-    """The environment of a stage started while ``side_by_side`` stages (itself included; default
-    ``jobs``) run: ``OMP_NUM_THREADS`` = cores // that, so a stage that runs alone (``prepare``,
-    ``extract_tokens``, ``evaluate`` of the default chain) gets every core."""
+def child_env(jobs: int, side_by_side: int) -> dict[str, str]:
+    """The environment of a stage started while ``side_by_side`` stages (itself included) run:
+    ``OMP_NUM_THREADS`` = cores // that (at most ``jobs``), so a stage that runs alone
+    (``prepare``, ``extract_tokens``, ``evaluate`` of the default chain) gets every core."""
     env = dict(os.environ)
-    threads = str(max(1, (os.cpu_count() or 1) // max(1, min(jobs, side_by_side or jobs))))
+    threads = str(max(1, (os.cpu_count() or 1) // max(1, min(jobs, side_by_side))))
     for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(k, threads)
     if jobs > 1:
