@@ -616,6 +616,7 @@ class GenModel:
     hpf_heads: int = MISSING
     hpf_head_dim: int = MISSING
     text_norm: str = MISSING
+    cond_drop: float = MISSING
 
 
 @dataclass
@@ -677,6 +678,7 @@ class GenGenerate:
     top_p: Optional[float] = MISSING
     seed: int = MISSING
     use_cache: bool = MISSING
+    cond_scale: float = MISSING             # classifier-free guidance (1 = off)
     lengths: str = MISSING                  # gt | free
     texts: Optional[List[str]] = MISSING
     texts_file: Optional[str] = MISSING

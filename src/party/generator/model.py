@@ -68,6 +68,7 @@ class GeneratorSpec:
     hpf_heads: int
     hpf_head_dim: int
     text_norm: str
+    cond_drop: float
     lambda_div: float
     tau: float
     lambda_aux: float
@@ -76,7 +77,7 @@ class GeneratorSpec:
     text_dim: int
 
     _MODEL = ("dim", "part_layers", "holistic_layers", "heads", "mlp_ratio", "dropout", "max_tokens", "ptg_k",
-              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim", "text_norm")
+              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim", "text_norm", "cond_drop")
     _LOSS = ("lambda_div", "tau", "lambda_aux")
     _METHOD = ("kind", "pg", "ptg", "hpf", "aux")
 
@@ -105,6 +106,8 @@ class GeneratorSpec:
             raise ValueError(f"part streams step in lock-step and need one window, got {dict(self.windows)}")
         if self.aux and not self.ptg:
             raise ValueError("aux (the PTG auxiliary loss) needs ptg")
+        if not 0.0 <= self.cond_drop < 1.0:
+            raise ValueError(f"generator.model.cond_drop must lie in [0, 1), got {self.cond_drop}")
 
     @property
     def holistic(self) -> str:
@@ -253,7 +256,10 @@ class PartyGenerator(nn.Module):
         return gpt(x + add), maps
 
     def _teacher_forcing(self, batch: Mapping, need_weights: bool = False) -> dict:
-        c = self.norm_text(batch["text_emb"])
+        c, keep = self.norm_text(batch["text_emb"]), None
+        if self.training and self.spec.cond_drop > 0:      # classifier-free guidance: learn the null condition too
+            keep = torch.rand(c.shape[0], device=c.device) >= self.spec.cond_drop
+            c = c * keep[:, None].to(c.dtype)
         inp, tgt, seen = {}, {}, {}
         for s in self.spec.streams:
             g, n = self.gpt[s], batch["lengths"][s].to(c.device)
@@ -275,7 +281,7 @@ class PartyGenerator(nn.Module):
                                for p in self.parts}
             logits[self.hol], maps = self._holistic_logits(c, inp[self.hol], part_tokens, need_weights)
         return {"logits": logits, "targets": tgt, "gates": gates, "c_parts": c_parts, "c_prime": c_prime,
-                "maps": maps, "c": c}
+                "maps": maps, "c": c, "keep": keep}
 
     # ------------------------------------------------------------------ API
     def forward(self, batch: Mapping) -> dict[str, torch.Tensor]:
@@ -298,11 +304,15 @@ class PartyGenerator(nn.Module):
             else:
                 out["part"] = out["part"] + ce
             out[f"acc_{s}"] = (lg.argmax(-1) == tgt)[valid].float().mean().detach()
-        if self.ptg is not None:
-            out["div"] = diversity_loss(tf["c_prime"], c, self.spec.tau)
+        keep = tf["keep"]                       # rows trained on the null condition have no PTG terms
+        rows = (lambda x: x) if keep is None else (lambda x: x[keep])
+        if self.ptg is not None and (keep is None or bool(keep.any())):
+            out["div"] = diversity_loss(rows(tf["c_prime"]), rows(c), self.spec.tau)
             if self.spec.aux:
-                part_emb = {p: self.norm_text(e) for p, e in batch["part_emb"].items()}
-                out["aux"] = PartTextGrounding.aux_loss(tf["c_parts"], part_emb, batch["no_movement"], c)
+                part_emb = {p: rows(self.norm_text(e)) for p, e in batch["part_emb"].items()}
+                out["aux"] = PartTextGrounding.aux_loss({p: rows(v) for p, v in tf["c_parts"].items()}, part_emb,
+                                                        {p: rows(v) for p, v in batch["no_movement"].items()},
+                                                        rows(c))
         out["loss"] = out["hol"] + out["part"] + self.spec.lambda_div * out["div"] + self.spec.lambda_aux * out["aux"]
         out["gates"] = {p: g.detach() for p, g in tf["gates"].items()}
         return out
@@ -332,16 +342,21 @@ class PartyGenerator(nn.Module):
     def generate(self, text_emb: torch.Tensor, lengths: Mapping[str, torch.Tensor] | None = None,
                  sampling: str = "greedy", temperature: float = 1.0, top_k: int | None = None,
                  top_p: float | None = None, generator: torch.Generator | None = None,
-                 use_cache: bool = True) -> dict[str, list[torch.Tensor]]:
+                 use_cache: bool = True, cond_scale: float = 1.0) -> dict[str, list[torch.Tensor]]:
         """Codes per stream and sample (END excluded). ``lengths`` {stream: (B,)} target code counts
         (END suppressed before, forced at); every stream ends by ``max_tokens`` codes. Runs in eval
-        mode (restored after). ``use_cache=False`` recomputes the full prefix at every step."""
+        mode (restored after). ``use_cache=False`` recomputes the full prefix at every step.
+        ``cond_scale`` s != 1: classifier-free guidance, every stream's logits u + s (l - u) from the
+        text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0)."""
+        if cond_scale != 1.0 and self.spec.cond_drop <= 0:
+            raise ValueError(f"cond_scale {cond_scale} needs a model trained with generator.model.cond_drop > 0 "
+                             "(this one never saw the null condition); use cond_scale 1")
         was = self.training
         self.eval()
         try:
             with torch.inference_mode():
                 return _Generation(self, text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
-                                   use_cache).run()
+                                   use_cache, float(cond_scale)).run()
         finally:
             self.train(was)
 
@@ -349,11 +364,14 @@ class PartyGenerator(nn.Module):
 class _Generation:
     """One batched generation: part-then-holistic cycles (party), or one kind's streams."""
 
-    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool):
+    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool, cond_scale: float):
         c = model.norm_text(c)
+        self.B, self.cond_scale = c.shape[0], cond_scale
+        if cond_scale != 1.0:                      # rows B..2B-1: the null condition, fed the same tokens
+            c = torch.cat([c, torch.zeros_like(c)])
         self.m, self.c, self.sampler, self.use_cache = model, c, sampler, use_cache
         spec = model.spec
-        self.B, self.M = c.shape[0], spec.max_tokens
+        self.N, self.M = c.shape[0], spec.max_tokens
         self.streams = spec.streams
         dev = c.device
         self.tok = {s: torch.empty(self.B, 0, dtype=torch.long, device=dev) for s in self.streams}
@@ -370,12 +388,19 @@ class _Generation:
             self.cond.update(c_parts)
         if spec.kind != "partwise":
             self.cond[model.hol] = c
-        self.cache = {s: model.gpt[s].body.new_cache(self.B, c.dtype, dev) for s in self.streams} if use_cache else {}
-        self.hpf_cache = model.hpf.start(self.B, c.dtype, dev) if use_cache and model.hpf is not None else None
+        self.cache = {s: model.gpt[s].body.new_cache(self.N, c.dtype, dev) for s in self.streams} if use_cache else {}
+        self.hpf_cache = model.hpf.start(self.N, c.dtype, dev) if use_cache and model.hpf is not None else None
         self.guidance = None
+
+    def _rows(self, t: torch.Tensor) -> torch.Tensor:
+        """Per-sample tensor (B, ...) -> the model's rows (N, ...): repeated for the null condition."""
+        return t if self.N == self.B else torch.cat([t, t])
 
     def _pick(self, s: str, logits: torch.Tensor, k: int) -> None:
         g = self.m.gpt[s]
+        if self.N != self.B:                     # classifier-free guidance: u + s (l - u)
+            cond, null = logits[:self.B], logits[self.B:]
+            logits = null + self.cond_scale * (cond - null)
         force = torch.full((self.B,), k >= self.M, dtype=torch.bool, device=logits.device)
         t = self.target[s]
         if t is not None:
@@ -390,7 +415,7 @@ class _Generation:
 
     def _last_input(self, s: str) -> torch.Tensor:
         g, k = self.m.gpt[s], self.tok[s].shape[1]
-        return g.cond(self.cond[s])[:, None] if k == 0 else g.tok(self.tok[s][:, -1:])
+        return g.cond(self.cond[s])[:, None] if k == 0 else g.tok(self._rows(self.tok[s][:, -1:]))
 
     def part_step(self, p: str) -> None:
         g, k = self.m.gpt[p], self.tok[p].shape[1]
@@ -400,7 +425,7 @@ class _Generation:
         if self.use_cache:
             logits = g(self._last_input(p), start=k, cache=self.cache[p])[:, -1]
         else:
-            logits = g(g.inputs(self.cond[p], self.tok[p]))[:, -1]
+            logits = g(g.inputs(self.cond[p], self._rows(self.tok[p])))[:, -1]
         self._pick(p, logits, k)
 
     def holistic_step(self) -> None:
@@ -410,19 +435,19 @@ class _Generation:
             x = self._last_input(h)
             if m.hpf is not None:
                 T, w_h, w_p = m._sched()
-                x = x + m.hpf.step(self.hpf_cache, x, j, S.holistic_times(self.B, 1, T, w_h, w_p, j, x.device))
+                x = x + m.hpf.step(self.hpf_cache, x, j, S.holistic_times(self.N, 1, T, w_h, w_p, j, x.device))
             if self.guidance is not None:
                 x = x + self.guidance
             logits = g(x, start=j, cache=self.cache[h])[:, -1]
         else:
-            parts = {p: self.tok[p] for p in m.parts} if m.spec.kind == "party" else None
-            logits = m._holistic_logits(self.c, self.tok[h], parts)[0][:, -1]
+            parts = {p: self._rows(self.tok[p]) for p in m.parts} if m.spec.kind == "party" else None
+            logits = m._holistic_logits(self.c, self._rows(self.tok[h]), parts)[0][:, -1]
         self._pick(h, logits, j)
 
     def _cycle_parts(self, k0: int) -> None:
         """After a part phase: hand the new part elements k0.. to the HPF cache and form G_i."""
         m = self.m
-        chunk = {p: self.tok[p][:, k0:] for p in m.parts}
+        chunk = {p: self._rows(self.tok[p][:, k0:]) for p in m.parts}
         if self.hpf_cache is not None:
             m.hpf.add_parts(self.hpf_cache, m._hpf_parts(chunk, k0), k0)
         if m.pg is not None and self.use_cache:

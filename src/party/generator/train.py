@@ -97,7 +97,9 @@ def load_generator(path: str | Path, map_location="cpu") -> tuple[PartyGenerator
     if not isinstance(obj, dict) or obj.get("format") != FORMAT:
         raise ValueError(f"{path}: not a party generator (format {obj.get('format') if isinstance(obj, dict) else '?'}, "
                          f"expected {FORMAT}); rerun `party train_generator`")
-    model = PartyGenerator(GeneratorSpec(**obj["spec"]))
+    spec = dict(obj["spec"])
+    spec.setdefault("cond_drop", 0.0)    # models saved before the key existed never saw the null condition
+    model = PartyGenerator(GeneratorSpec(**spec))
     model.load_state_dict(obj["state_dict"])
     return model.eval(), obj["meta"]
 
