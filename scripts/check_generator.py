@@ -2,13 +2,15 @@
 
     .venv/bin/python scripts/check_generator.py [--methods party holistic partwise] [--samples 20]
                                                 [--frames 120] [--out data/eval/side_checks.json]
+                                                [--sampling sample|greedy] [--cond-scale S]
 
 For prompts that name a side in phrasings absent from the training captions (checked),
 generate ``--samples`` motions each (sampled, seeded; ``--frames`` long) and count how often
 the named limb does it, with the criteria of ``party.data.synthetic.checks`` (thresholds
 ``vqvae.diagnostics.side_checks``): a waving/raised arm's wrist is above its own shoulder in
 >= 20 points more frames than the other wrist; a kicking foot's ankle is 10 cm above the other
-more often than the reverse. Both hold for 100% of the synthetic ground truth.
+more often than the reverse. Both hold for 100% of the synthetic ground truth. Also reported:
+how often the *other* limb does it instead (a wrong side, as opposed to no action at all).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from party.data.context import load_context
-from party.data.synthetic.checks import kick_kept, wave_kept
+from party.data.synthetic.checks import OTHER, kick_kept, wave_kept
 from party.generator.generate import Decoder, embed_texts, generate_batches
 from party.generator.train import load_generator
 from party.motion.features import recover_from_ric_np
@@ -41,6 +43,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--out", default=None)
     ap.add_argument("--generators", default=None, help="folder of trained methods (default: generator.out_dir)")
+    ap.add_argument("--cond-scale", type=float, default=None,
+                    help="classifier-free guidance scale (default: generator.generate.cond_scale)")
+    ap.add_argument("--sampling", default="sample", choices=["sample", "greedy"])
     a = ap.parse_args()
     cfg = OmegaConf.load(a.params)
     ctx = load_context(cfg)
@@ -52,7 +57,9 @@ def main() -> None:
             "kick": lambda j, s: kick_kept(j, s, float(side.kick_lift_m))}
     texts = [p for _, _, p in PROMPTS for _ in range(a.samples)]
     emb = embed_texts(cfg, texts)
-    gcfg = OmegaConf.merge(cfg.generator.generate, {"sampling": "sample"})
+    gcfg = OmegaConf.merge(cfg.generator.generate, {"sampling": a.sampling})
+    if a.cond_scale is not None:
+        gcfg.cond_scale = a.cond_scale
     report = {}
     for m in a.methods:
         model, meta = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
@@ -62,12 +69,16 @@ def main() -> None:
                                                                    meta["streams"]), progress=False)
         rows = {}
         for n, (kind, s, p) in enumerate(PROMPTS):
-            ok = [kept[kind](recover_from_ric_np(f, ctx.n_joints), s)
-                  for f in feats[n * a.samples:(n + 1) * a.samples]]
-            rows[p] = {"kind": kind, "side": s, "kept": float(np.mean(ok))}
-        report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()]))}
-        print(f"{m}: " + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
-              + f" | mean {report[m]['mean']:.0%}")
+            joints = [recover_from_ric_np(f, ctx.n_joints) for f in feats[n * a.samples:(n + 1) * a.samples]]
+            ok = [kept[kind](j, s) for j in joints]
+            mirrored = [kept[kind](j, OTHER[s]) for j in joints]     # the other limb does it instead
+            rows[p] = {"kind": kind, "side": s, "kept": float(np.mean(ok)), "other_side": float(np.mean(mirrored))}
+        report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()])),
+                     "other_side": float(np.mean([r["other_side"] for r in rows.values()])),
+                     "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale)}
+        print(f"{m} ({a.sampling}, cond_scale {float(gcfg.cond_scale):g}): "
+              + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
+              + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})")
     if a.out:
         Path(a.out).write_text(json.dumps(report, indent=1))
 
