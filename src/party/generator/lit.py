@@ -52,6 +52,11 @@ class GeneratorLit(L.LightningModule):
                 vals[f"gate_{part}_{k}"] = float(v)
         return vals
 
+    def on_train_start(self):
+        # Lightning keeps each module's mode as it finds it at fit start; training needs train mode
+        # (dropout, generator.model.cond_drop), whatever evaluated the model before.
+        self.model.train()
+
     def training_step(self, batch, _):
         out = self.model.losses(self._inputs(batch))
         self.log_dict({f"train/{k}": v for k, v in self._scalars(out).items()}, batch_size=len(batch["caption"]))

@@ -122,15 +122,22 @@ def _identity(cfg) -> dict:
 
 @torch.no_grad()
 def _evaluate(model, loader) -> dict[str, float]:
+    """Validation losses in eval mode; the model's train/eval mode is restored afterwards (Lightning
+    does not call ``.train()`` at fit start: a model left in eval mode trains without dropout and
+    without ``cond_drop``)."""
+    was = model.training
     model.eval()
     tot, n = {}, 0
-    for b in loader:
-        out = model.losses(b)
-        k = len(b["caption"])
-        for key, v in out.items():
-            if key != "gates":
-                tot[key] = tot.get(key, 0.0) + float(v) * k
-        n += k
+    try:
+        for b in loader:
+            out = model.losses(b)
+            k = len(b["caption"])
+            for key, v in out.items():
+                if key != "gates":
+                    tot[key] = tot.get(key, 0.0) + float(v) * k
+            n += k
+    finally:
+        model.train(was)
     return {f"val/{k}": v / max(n, 1) for k, v in tot.items()}
 
 
