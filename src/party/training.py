@@ -37,6 +37,13 @@ TRAINER_KEYS = ("accelerator", "devices", "num_nodes", "strategy", "precision", 
 
 # --------------------------------------------------------------------------- small shared pieces
 
+def adam(params, *, decoupled: bool = False, **kw) -> torch.optim.Optimizer:
+    """Adam (``decoupled``: AdamW) with the fused kernel: one pass over every parameter instead of
+    PyTorch's per-tensor loop on CPU (bench/bench_optimizer.py). Same update rule and state."""
+    cls = torch.optim.AdamW if decoupled else torch.optim.Adam
+    return cls(params, fused=True, **kw)
+
+
 def count_params(module: torch.nn.Module, trainable_only: bool = False) -> int:
     """Number of parameters of ``module`` (only those with ``requires_grad`` if asked)."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 
 from party.evaluation.evaluator import Evaluator, MovementConvDecoder
 from party.evaluation.metrics import matching_score, r_precision
+from party.training import adam
 
 
 def contrastive_loss(a: torch.Tensor, b: torch.Tensor, negative: bool, margin: float) -> torch.Tensor:
@@ -57,7 +58,7 @@ class MovementAELit(L.LightningModule):
 
     def configure_optimizers(self):
         params = list(self.movement_encoder.parameters()) + list(self.decoder.parameters())
-        return torch.optim.Adam(params, lr=self.lr)
+        return adam(params, lr=self.lr)
 
 
 class MatchLit(L.LightningModule):
@@ -129,4 +130,4 @@ class MatchLit(L.LightningModule):
         motion = list(self.ev.motion_encoder.parameters())
         if not self.freeze_movement:
             motion += list(self.ev.movement_encoder.parameters())
-        return torch.optim.Adam([{"params": text}, {"params": motion}], lr=self.lr)
+        return adam([{"params": text}, {"params": motion}], lr=self.lr)

@@ -15,6 +15,7 @@ import lightning as L
 import torch
 
 from party.generator.data import corrupt_codes
+from party.training import adam
 
 _SCALARS = ("loss", "hol", "part", "div", "aux")
 
@@ -76,7 +77,7 @@ class GeneratorLit(L.LightningModule):
 
     def configure_optimizers(self):
         o = self.optim_cfg
-        opt = torch.optim.AdamW(self.parameters(), lr=o["lr"], betas=tuple(o["betas"]),
-                                weight_decay=o["weight_decay"])
+        opt = adam(self.parameters(), decoupled=True, lr=o["lr"], betas=tuple(o["betas"]),
+                   weight_decay=o["weight_decay"])
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: step_lr_factor(s, o))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

@@ -25,6 +25,7 @@ import lightning as L
 import torch
 
 from party.tokenizers.vqvae import Tokenizer
+from party.training import adam
 
 
 def _penalty(kind: str):
@@ -163,8 +164,8 @@ class VQVAELit(L.LightningModule):
     # -------------------------------------------------------------- optimiser
     def configure_optimizers(self):
         o = self.optim_cfg
-        opt = torch.optim.AdamW(self.parameters(), lr=float(o["lr"]), betas=tuple(o["betas"]),
-                                weight_decay=float(o["weight_decay"]))
+        opt = adam(self.parameters(), decoupled=True, lr=float(o["lr"]), betas=tuple(o["betas"]),
+                   weight_decay=float(o["weight_decay"]))
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, o))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
