@@ -617,6 +617,7 @@ class GenModel:
     hpf_head_dim: int = MISSING
     text_norm: str = MISSING
     cond_drop: float = MISSING
+    ptg_init: str = MISSING
 
 
 @dataclass

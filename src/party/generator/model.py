@@ -45,6 +45,7 @@ from party.generator.sampling import choose
 
 KINDS = ("party", "holistic", "partwise")
 TEXT_NORMS = ("none", "standardize")
+PTG_INITS = ("he", "normal")
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,7 @@ class GeneratorSpec:
     hpf_head_dim: int
     text_norm: str
     cond_drop: float
+    ptg_init: str
     lambda_div: float
     tau: float
     lambda_aux: float
@@ -77,7 +79,7 @@ class GeneratorSpec:
     text_dim: int
 
     _MODEL = ("dim", "part_layers", "holistic_layers", "heads", "mlp_ratio", "dropout", "max_tokens", "ptg_k",
-              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim", "text_norm", "cond_drop")
+              "ptg_hidden", "pg_window", "pg_hidden", "hpf_heads", "hpf_head_dim", "text_norm", "cond_drop", "ptg_init")
     _LOSS = ("lambda_div", "tau", "lambda_aux")
     _METHOD = ("kind", "pg", "ptg", "hpf", "aux")
 
@@ -95,6 +97,8 @@ class GeneratorSpec:
             raise ValueError(f"method kind must be one of {KINDS}, got {self.kind!r}")
         if self.text_norm not in TEXT_NORMS:
             raise ValueError(f"generator.model.text_norm must be one of {TEXT_NORMS}, got {self.text_norm!r}")
+        if self.ptg_init not in PTG_INITS:
+            raise ValueError(f"generator.model.ptg_init must be one of {PTG_INITS}, got {self.ptg_init!r}")
         if list(self.vocab) != list(self.windows) or len(self.vocab) < 2:
             raise ValueError(f"vocab {list(self.vocab)} and windows {list(self.windows)} must name the same "
                              "streams, holistic first, then at least one part")
@@ -186,6 +190,8 @@ class PartyGenerator(nn.Module):
         self.register_buffer("text_mean", torch.zeros(spec.text_dim))
         self.register_buffer("text_std", torch.ones(spec.text_dim))
         self.apply(_init)
+        if self.ptg is not None and spec.ptg_init == "he":
+            self.ptg.he_init()
 
     def set_text_stats(self, caption_emb: torch.Tensor) -> None:
         """Per-dimension mean / std of the training captions' embeddings (N, D_text), used by

@@ -44,6 +44,19 @@ class PartTextGrounding(nn.Module):
         self.mlps = nn.ModuleList(mlp3(text_dim, hidden) for _ in range(k))
         self.gates = nn.ModuleDict({p: nn.Linear(text_dim, k) for p in parts})
 
+    @torch.no_grad()
+    def he_init(self) -> None:
+        """Signal-preserving init of the K MLPs (``generator.model.ptg_init = he``): He-normal for the
+        layers before a ReLU, std 1/sqrt(fan_in) for the last, zero biases, so c'_n starts at the
+        scale of c and varies with it. (N(0, 0.02) everywhere shrinks a 3-layer MLP's output to ~4%
+        of c and its dependence on c further: the side of "left"/"right" never reaches c^p.)"""
+        for mlp in self.mlps:
+            linears = [m for m in mlp if isinstance(m, nn.Linear)]
+            for i, lin in enumerate(linears):
+                last = i == len(linears) - 1
+                nn.init.kaiming_normal_(lin.weight, nonlinearity="linear" if last else "relu")
+                nn.init.zeros_(lin.bias)
+
     def forward(self, c: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], torch.Tensor]:
         """c (B, D) -> ({part: c^p (B, D)}, {part: gate weights (B, K)}, c' (B, K, D))."""
         c_prime = torch.stack([m(c) for m in self.mlps], dim=1)

@@ -99,6 +99,7 @@ def load_generator(path: str | Path, map_location="cpu") -> tuple[PartyGenerator
                          f"expected {FORMAT}); rerun `party train_generator`")
     spec = dict(obj["spec"])
     spec.setdefault("cond_drop", 0.0)    # models saved before the key existed never saw the null condition
+    spec.setdefault("ptg_init", "normal")  # ... and were built with N(0, 0.02) PTG MLPs (only matters at build)
     model = PartyGenerator(GeneratorSpec(**spec))
     model.load_state_dict(obj["state_dict"])
     return model.eval(), obj["meta"]
