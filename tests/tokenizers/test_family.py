@@ -24,7 +24,7 @@ from party.tokenizers.tokens import TokenStore
 from party.tokenizers.vqvae import (FAMILIES, VQVAE, Tokenizer, build_tokenizer, family_class, load_tokenizer,
                                     register_family, save_tokenizer)
 
-from conftest import CONF, tiny_cfg
+from tok_helpers import CONF, tiny_cfg
 from stub_family import ResidualStub
 
 STUB = "stub_family.ResidualStub"

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from party.motion.features import recover_from_ric
 from party.tokenizers import diagnostics, load_tokenizer
 
-from conftest import CONF, tiny_cfg
+from tok_helpers import CONF, tiny_cfg
 from recon_fixture import DOWN, RAISED, write_recon_dataset
 
 L_WRIST, L_SHOULDER = 20, 16

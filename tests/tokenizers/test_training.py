@@ -19,7 +19,7 @@ from party.tokenizers.tokens import TokenStore
 from party.tokenizers.train import train_tokenizer
 from party.tokenizers.vqvae import load_tokenizer
 
-from conftest import tiny_cfg, write_tiny_dataset
+from tok_helpers import tiny_cfg, write_tiny_dataset
 
 
 class SimulatedKill(Exception):
