@@ -29,6 +29,9 @@ SWAP = {"left": "right", "right": "left"}
 
 
 def swap_sides(text: str) -> str:
+    """left <-> right only. Not party.data.synthetic.captions.swap_sides, the mirror-caption swap,
+    which also turns clockwise <-> counterclockwise (64 of the 600 default samples say "clockwise"):
+    this measures the side alone."""
     return re.sub(r"\b(left|right)\b", lambda m: SWAP[m.group(1).lower()], text, flags=re.I)
 
 

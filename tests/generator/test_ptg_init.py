@@ -33,7 +33,7 @@ def _scale_and_side(model: PartyGenerator) -> tuple[float, float]:
 
 def test_he_keeps_the_text_signal_normal_shrinks_it():
     he_scale, he_change = _scale_and_side(_build("he"))
-    n_scale, n_change = _scale_and_side(_build("normal"))
+    n_scale, _ = _scale_and_side(_build("normal"))
     assert 0.3 < he_scale < 3.0, he_scale                 # c' starts at the scale of c
     assert n_scale < 0.1, n_scale                          # N(0, 0.02): ~4% of c
     assert he_change > 0.1, he_change                      # a change of c moves c'
