@@ -510,6 +510,7 @@ class EvalSources:
     tokenizers: List[str] = MISSING
     tokenizers_dir: str = MISSING
     tokenizer_ckpt: Optional[str] = MISSING
+    memo_reconstructions: bool = MISSING
     generated: Any = _union(str, List[str])  # auto | [run folders]
     generated_dir: str = MISSING
 

@@ -229,3 +229,43 @@ def test_codec_source_keeps_dataset_normalisation(tiny_prepared, tmp_path):
         TokenizerSource(object(), "arms", ctx, torch.device("cpu"))
     x = torch.randn(1, 8, len(ctx.layout.index("arms")))
     assert src.reconstruct_stream(x).shape == x.shape
+
+
+def test_memoised_reconstruction_equals_recomputation(tiny_prepared, tmp_path):
+    """evaluate keeps each crop's reconstruction (``eval.sources.memo_reconstructions``): a crop
+    drawn again is not encoded again, and every output, its content key and the MPJPE equal
+    what recomputation gives, in every replication."""
+    from party.evaluation.protocol import reconstruction_metrics
+    from party.evaluation.sources import GroundTruthSource, content_key
+
+    class Counting(torch.nn.Module):
+        window, encoded = 2, 0
+
+        def encode(self, x):
+            self.encoded += len(x)
+            return x[:, ::2] * 0.9
+
+        def decode(self, codes):
+            return codes.repeat_interleave(2, dim=1)
+
+    cfg = tiny_cfg(tmp_path, tiny_prepared)
+    ctx = load_context(cfg)
+    gt_src = GroundTruthSource(ctx, "test", 196, 4)
+    memo_src, plain_src = (TokenizerSource(Counting(), "arms", ctx, torch.device("cpu"), memo=m) for m in (True, False))
+    errors: dict = {}
+    rng, seen = np.random.default_rng(0), set()
+    for rep in range(4):
+        gt = gt_src.draw(rng)
+        before = memo_src.tok.encoded
+        a, b = memo_src.reconstruct(gt), plain_src.reconstruct(gt)
+        new = set(gt.content_keys) - seen
+        assert memo_src.tok.encoded - before == len(new)               # only crops not seen before
+        seen |= new
+        assert plain_src.tok.encoded == len(gt) * (rep + 1)
+        for fa, fb, k in zip(a.feats, b.feats, a.content_keys, strict=True):
+            np.testing.assert_array_equal(fa, fb)
+            assert k == content_key(fa)
+        m = reconstruction_metrics(a, gt, ctx.layout, ctx.n_joints, {"mpjpe_scale": 1000.0}, errors)
+        assert m == reconstruction_metrics(b, gt, ctx.layout, ctx.n_joints, {"mpjpe_scale": 1000.0})
+        assert m["mpjpe_mm"] > 0
+    assert len(errors) == len(seen) and len(seen) < 4 * len(gt)    # crops repeat across draws

@@ -81,7 +81,7 @@ def tokenizer_sources(cfg: DictConfig, ctx: DataContext, device: torch.device) -
     for s in src.tokenizers or []:
         ckpt = find_tokenizer(Path(src.tokenizers_dir) / s, src.tokenizer_ckpt)
         if ckpt is not None:
-            out[s] = load_tokenizer_source(ckpt, s, ctx, device)
+            out[s] = load_tokenizer_source(ckpt, s, ctx, device, memo=src.memo_reconstructions)
         else:
             log.info("%s: no tokenizer checkpoint, reconstruction of %s skipped", Path(src.tokenizers_dir) / s, s)
     return out
@@ -132,7 +132,8 @@ def reconstruction_fid_scorer(cfg, stream: str):
     embedders = {stream: Embedder(ev, ec.embed_batch_size)}
 
     def score(tok_dir: Path) -> dict:
-        src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device)
+        src = load_tokenizer_source(Path(tok_dir) / "model.pt", stream, ctx, device,
+                                    memo=ec.sources.memo_reconstructions)
         res = run_protocol(protocol, gt, embedders, {stream: src}, [], None, None, ctx.n_joints, ctx.layout,
                            progress=False)
         fid = res[f"recon_{stream}"][stream]["fid"]

@@ -138,6 +138,7 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
     scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
+    recon_errors: dict[str, dict[bytes, tuple[float, float, int]]] = defaultdict(dict)
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
     for ss in tqdm(seeds, desc="replications", disable=not progress):
         rng = np.random.default_rng(ss)
@@ -150,7 +151,8 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             rec = src.reconstruct(gt)
             streams = list(embedders) if stream == "holistic" else [s for s in embedders if s == stream]
             sets[f"recon_{stream}"] = (rec, streams, stream == "holistic")
-            rows[f"recon_{stream}"]["reconstruction"].append(reconstruction_metrics(rec, gt, layout, n_joints, cfg))
+            rows[f"recon_{stream}"]["reconstruction"].append(reconstruction_metrics(rec, gt, layout, n_joints, cfg,
+                                                                                          recon_errors[stream]))
         for g in generated:
             sets[g.name] = (g.draw(rng), list(embedders), True)
         for stream, emb in embedders.items():
@@ -192,33 +194,44 @@ def _rows_of(ms: MotionSet, ids: set[str]) -> torch.Tensor:
     return torch.tensor([i for i, k in enumerate(ms.keys) if k in ids], dtype=torch.long)
 
 
-def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int, cfg: Mapping) -> dict[str, float]:
+def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int, cfg: Mapping,
+                           memo: dict[bytes, tuple[float, float, int]] | None = None) -> dict[str, float]:
     """MPJPE (mm) over the reconstructed frames: all joints (holistic) or the stream's joints (parts).
 
     ``mpjpe_mm``: root-aligned per frame (pelvis subtracted from both, the
     MoMask / T2M-GPT convention); ``mpjpe_global_mm``: positions as recovered,
-    including root-trajectory drift.
+    including root-trajectory drift. ``memo``: per-clip error sums keyed by the ground-truth
+    crop's content (a crop's reconstruction is deterministic), reused across replications.
     """
-    from party.motion import recover_from_ric
-
     stream = rec.extra.get("stream", "holistic")
     scale = float(cfg["mpjpe_scale"])
+    memo = {} if memo is None else memo
     err_local = err_global = 0.0
     count = 0
-    for g_full, r_full in zip(gt.feats, rec.feats, strict=True):
-        if stream == "holistic":
-            T = len(r_full)
-            pj = recover_from_ric(torch.from_numpy(r_full), n_joints)
-            gj = recover_from_ric(torch.from_numpy(g_full[:T].astype(np.float32)), n_joints)
-        else:  # stream joints, root first (PartLayout.stream_joints is sorted and holds joint 0)
-            rs, gs = (torch.from_numpy(layout.slice(x, stream).astype(np.float32))
-                      for x in (r_full, g_full[: len(r_full)]))
-            pj, gj = layout.recover_stream_joints(rs, stream), layout.recover_stream_joints(gs, stream)
-        err_global += float(torch.linalg.vector_norm(pj - gj, dim=-1).sum())
-        err_local += float(torch.linalg.vector_norm((pj - pj[..., :1, :]) - (gj - gj[..., :1, :]), dim=-1).sum())
-        count += pj.shape[0] * pj.shape[1]
+    for key, g_full, r_full in zip(gt.content_keys, gt.feats, rec.feats, strict=True):
+        if key not in memo:
+            memo[key] = _clip_errors(g_full, r_full, stream, layout, n_joints)
+        e_local, e_global, n = memo[key]
+        err_local, err_global, count = err_local + e_local, err_global + e_global, count + n
     count = max(count, 1)
     return {"mpjpe_mm": scale * err_local / count, "mpjpe_global_mm": scale * err_global / count}
+
+
+def _clip_errors(g_full: np.ndarray, r_full: np.ndarray, stream: str, layout, n_joints: int
+                 ) -> tuple[float, float, int]:
+    """(sum of root-aligned errors, sum of global errors, joint-frames) of one reconstruction."""
+    from party.motion import recover_from_ric
+
+    if stream == "holistic":
+        T = len(r_full)
+        pj = recover_from_ric(torch.from_numpy(r_full), n_joints)
+        gj = recover_from_ric(torch.from_numpy(g_full[:T].astype(np.float32)), n_joints)
+    else:  # stream joints, root first (PartLayout.stream_joints is sorted and holds joint 0)
+        rs, gs = (torch.from_numpy(layout.slice(x, stream).astype(np.float32)) for x in (r_full, g_full[: len(r_full)]))
+        pj, gj = layout.recover_stream_joints(rs, stream), layout.recover_stream_joints(gs, stream)
+    err_global = float(torch.linalg.vector_norm(pj - gj, dim=-1).sum())
+    err_local = float(torch.linalg.vector_norm((pj - pj[..., :1, :]) - (gj - gj[..., :1, :]), dim=-1).sum())
+    return err_local, err_global, pj.shape[0] * pj.shape[1]
 
 
 def multimodality(g: GeneratedSource, emb: Embedder, c: Mapping, seed: int) -> dict | None:

@@ -100,12 +100,19 @@ class TokenizerSource:
     the ground truth's in the full vector, so the stream's evaluator reads the
     reconstruction. Clips are cropped to a multiple of the tokenizer window and
     batched by length (no padding reaches the tokenizer).
+
+    ``memo``: keep each reconstruction, keyed by the ground-truth crop's content, so a crop
+    drawn again in a later replication (a clip has at most ``unit_length`` crops up to
+    ``max_motion_len`` frames) is not encoded and decoded again. Only the stream's channels
+    are kept (the rest is the ground truth's); the eval split's crops, once each.
     """
 
     def __init__(self, tokenizer: Tokenizer | Codec, stream: str, ctx: DataContext, device: torch.device,
-                 batch_size: int = 64):
+                 batch_size: int = 64, memo: bool = False):
         self.tok, self.stream, self.ctx, self.device = tokenizer, stream, ctx, device
         self.batch_size = batch_size
+        self.memo: dict[bytes, np.ndarray] | None = {} if memo else None
+        self._keys: dict[bytes, bytes] = {}              # crop -> content key of its reconstruction
         self.idx = np.asarray(ctx.layout.index(stream))
         self.own_stats = isinstance(tokenizer, Tokenizer)
         if not self.own_stats and not isinstance(tokenizer, Codec):
@@ -131,24 +138,36 @@ class TokenizerSource:
         return self._denorm(self.tok.decode(self.tok.encode(self._norm(raw_s))))
 
     def reconstruct(self, gt: MotionSet) -> MotionSet:
-        out: list[np.ndarray | None] = [None] * len(gt)
+        memo: dict[bytes, np.ndarray] = self.memo if self.memo is not None else {}
+        keys = gt.content_keys
+        first = {k: i for i, k in reversed(list(enumerate(keys))) if k not in memo}
         by_len = defaultdict(list)
-        for i, f in enumerate(gt.feats):
-            by_len[len(f)].append(i)
+        for i in first.values():
+            by_len[len(gt.feats[i])].append(i)
         for n, ids in sorted(by_len.items()):
             T_in = n // self.window * self.window
             if T_in == 0:
                 raise ValueError(f"clip {gt.keys[ids[0]]}: {n} frames, shorter than the tokenizer window {self.window}")
             for b0 in range(0, len(ids), self.batch_size):
                 chunk = ids[b0 : b0 + self.batch_size]
-                full = np.stack([gt.feats[i][:T_in] for i in chunk]).astype(np.float32)
-                rec = self.reconstruct_stream(torch.from_numpy(full[..., self.idx])).numpy()
+                full = np.stack([gt.feats[i][:T_in, self.idx] for i in chunk]).astype(np.float32)
+                rec = self.reconstruct_stream(torch.from_numpy(full)).numpy()
                 T = min(rec.shape[1], T_in)
-                full = full[:, :T].copy()
-                full[..., self.idx] = rec[:, :T]
                 for k, i in enumerate(chunk):
-                    out[i] = full[k]
-        return MotionSet(list(gt.keys), list(gt.captions), list(gt.tokens), out, extra={"stream": self.stream})
+                    memo[keys[i]] = rec[k, :T]
+        out, out_keys = [], []
+        for k, f in zip(keys, gt.feats, strict=True):
+            r = memo[k]
+            full = f[: len(r)].astype(np.float32)         # a copy: the ground truth stays as drawn
+            full[..., self.idx] = r
+            out.append(full)
+            if k not in self._keys:                       # the output is a function of the crop
+                self._keys[k] = content_key(full)
+            out_keys.append(self._keys[k])
+        if self.memo is None:
+            self._keys.clear()
+        return MotionSet(list(gt.keys), list(gt.captions), list(gt.tokens), out,
+                         extra={"stream": self.stream, "_keys": out_keys})
 
     def ait_inputs(self, gt: MotionSet, n: int) -> list[torch.Tensor]:
         """Single-sample raw stream inputs (cropped to the window) for ``measure_ait``."""
@@ -169,7 +188,8 @@ def find_tokenizer(folder: Path, name: str | None) -> Path | None:
     return None
 
 
-def load_tokenizer_source(ckpt: Path, stream: str, ctx: DataContext, device: torch.device) -> TokenizerSource:
+def load_tokenizer_source(ckpt: Path, stream: str, ctx: DataContext, device: torch.device,
+                          memo: bool = False) -> TokenizerSource:
     try:
         from party.tokenizers import load_tokenizer
     except ImportError as e:
@@ -179,7 +199,7 @@ def load_tokenizer_source(ckpt: Path, stream: str, ctx: DataContext, device: tor
     if isinstance(tok, (Tokenizer, torch.nn.Module)):
         tok = tok.to(device)
         tok.eval()
-    return TokenizerSource(tok, stream, ctx, device)
+    return TokenizerSource(tok, stream, ctx, device, memo=memo)
 
 
 class GeneratedSource:
