@@ -86,6 +86,31 @@ def test_reference_checkpoint_loads_strict_and_embeds(tmp_path):
                                ev.embed_motion(feats[:1], torch.tensor([40])), atol=1e-5, rtol=1e-5)  # padding ignored
 
 
+
+def test_padding_to_longest_plus_one_unit_equals_reference_padding(tmp_path):
+    """Batches are padded to their longest clip + one unit, not to 196 frames: every embedding
+    equals the reference's (every motion zero-padded to 196), for lengths that are and are not
+    multiples of the unit, in a batch of short clips and one that reaches 196."""
+    ckpt, glove, _ = write_reference_checkpoint(tmp_path)
+    rng = np.random.default_rng(1)
+    mean, std = rng.normal(size=263).astype(np.float32), rng.uniform(0.5, 2, 263).astype(np.float32)
+    ev = load_reference(ckpt, glove, mean, std, REF_DIMS).eval()
+
+    def reference(feats, lens):                          # the published loaders: zeros up to 196
+        x = torch.nn.functional.pad(feats, (0, 0, 0, 196 - feats.shape[1]))
+        lens = lens // 4 * 4
+        x = ((x - ev.mean) / ev.std)[..., ev.channels] * (torch.arange(196)[None, :] < lens[:, None])[..., None]
+        return ev.motion_encoder(ev.movement_encoder(x), lens // 4)
+
+    for T, lens in ((64, [64, 41, 52, 8]), (196, [196, 100, 37])):
+        feats = torch.from_numpy(rng.normal(size=(len(lens), T, 263)).astype(np.float32))
+        lens = torch.tensor(lens)
+        with torch.no_grad():
+            got, want = ev.embed_motion(feats, lens), reference(feats, lens)
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+        assert ev.motion_input(feats, lens)[0].shape[1] == min(196, int(lens.max()) // 4 * 4 + 4)
+
+
 def test_reference_kind_through_evaluate_stage(tmp_path):
     from party.stages import evaluate
 

@@ -139,23 +139,27 @@ class Evaluator(nn.Module):
     def motion_input(self, feats: torch.Tensor, lengths, normalized: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw (B, T, D) -> normalised, channel-selected, zero beyond each length (cropped to units).
 
-        Batches are zero-padded to at least ``pad_to`` frames, as the reference loaders pad every
-        motion to 196: the convolutions then see the same zeros past a clip's end whatever the
-        batch's longest clip, so an embedding does not depend on its batch (only clips longer
-        than ``pad_to`` can see a difference at their last unit).
+        The reference loaders pad every motion to 196 frames (``pad_to``): the convolutions
+        then see zeros past a clip's end whatever the batch's longest clip, so an embedding
+        does not depend on its batch. The embedding reads the movement codes of a clip's own
+        units only, and those see at most 3 frames past its end (two k=4, s=2, p=1
+        convolutions), so the batch is padded (or trimmed) to its longest clip plus one unit
+        instead: the same embeddings, without convolving up to 196 - T frames of zeros.
+        Clips longer than ``pad_to`` are kept whole, as before.
         """
         x = torch.as_tensor(feats, dtype=torch.float32, device=self.device)
-        if x.shape[1] < self.pad_to:
-            x = torch.nn.functional.pad(x, (0, 0, 0, self.pad_to - x.shape[1]))
         if x.shape[-1] != self.feat_dim:
             raise ValueError(f"{self.stream} evaluator expects {self.feat_dim}-dim features, got {x.shape[-1]}")
-        if not normalized:
-            x = (x - self.mean) / self.std
-        x = x[..., self.channels]
         lengths = torch.as_tensor(lengths, dtype=torch.long, device=self.device)
         lengths = (lengths // self.unit_length) * self.unit_length
         if (lengths < self.unit_length).any():
             raise ValueError(f"motion shorter than one evaluator unit ({self.unit_length} frames)")
+        if x.shape[1] <= self.pad_to:
+            need = min(self.pad_to, int(lengths.max()) + self.unit_length)
+            x = torch.nn.functional.pad(x, (0, 0, 0, need - x.shape[1])) if x.shape[1] < need else x[:, :need]
+        if not normalized:
+            x = (x - self.mean) / self.std
+        x = x[..., self.channels]
         mask = torch.arange(x.shape[1], device=self.device)[None, :] < lengths[:, None]
         return x * mask[..., None], lengths
 

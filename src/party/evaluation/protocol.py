@@ -33,8 +33,8 @@ class Embedder:
 
     Texts are keyed by caption + tokens; motions by a hash of their feature
     bytes (the evaluator is deterministic in eval mode, and
-    ``Evaluator.motion_input`` pads every batch to the same length, so an
-    embedding does not depend on its batch). Replications redraw captions and
+    ``Evaluator.motion_input`` pads every clip with enough zeros for the convolutions'
+    receptive field, so an embedding does not depend on its batch). Replications redraw captions and
     crops; a crop seen before (ground-truth clips have few possible crops, a
     generated file is fixed) is not embedded again.
     """
