@@ -356,7 +356,7 @@ class PartyGenerator(nn.Module):
         text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0)."""
         if cond_scale != 1.0 and self.spec.cond_drop <= 0:
             raise ValueError(f"cond_scale {cond_scale} needs a model trained with generator.model.cond_drop > 0 "
-                             "(this one never saw the null condition); use cond_scale 1")
+                             "(this one never saw the null condition); set generator.generate.cond_scale=1")
         was = self.training
         self.eval()
         try:
