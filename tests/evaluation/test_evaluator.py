@@ -86,7 +86,6 @@ def test_reference_checkpoint_loads_strict_and_embeds(tmp_path):
                                ev.embed_motion(feats[:1], torch.tensor([40])), atol=1e-5, rtol=1e-5)  # padding ignored
 
 
-
 def test_padding_to_longest_plus_one_unit_equals_reference_padding(tmp_path):
     """Batches are padded to their longest clip + one unit, not to 196 frames: every embedding
     equals the reference's (every motion zero-padded to 196), for lengths that are and are not

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from party.evaluation import metrics as M
 from party.evaluation.coherence import Parts, SCReference, spatial_coherence, temporal_coherence
 from party.evaluation.evaluator import Evaluator
-from party.evaluation.sources import GeneratedSource, MotionSet, content_key
+from party.evaluation.sources import GeneratedSource, MotionSet, content_key, first_unseen
 from party.evaluation.stats import aggregate
 
 log = logging.getLogger(__name__)
@@ -60,8 +60,7 @@ class Embedder:
             keys, feats = feats.content_keys, feats.feats
         else:
             keys = [content_key(f) for f in feats]
-        first = {k: i for i, k in reversed(list(enumerate(keys)))}
-        todo = [i for k, i in first.items() if k not in self.motion_cache]
+        todo = list(first_unseen(keys, self.motion_cache).values())
         lengths = np.array([len(f) for f in feats])
         todo.sort(key=lambda i: -lengths[i])
         for b in range(0, len(todo), self.bs):
@@ -108,7 +107,7 @@ class CoherenceScorer:
     def __call__(self, ms: MotionSet) -> dict[str, float]:
         c = self.c
         keys, feats = ms.content_keys, ms.feats
-        todo = list({k: i for i, k in reversed(list(enumerate(keys))) if k not in self.cache}.items())
+        todo = list(first_unseen(keys, self.cache).items())
         if todo:
             joints = motion_joints([feats[i] for _, i in todo], self.n_joints)
             tc = temporal_coherence(joints, self.parts, float(c["sigma"]), float(c["kappa"]), int(c["window"]),

@@ -68,6 +68,11 @@ def content_key(f: np.ndarray) -> bytes:
     return hashlib.blake2b(a.tobytes(), digest_size=16, person=str(a.shape).encode()[:16]).digest()
 
 
+def first_unseen(keys: list[bytes], seen) -> dict[bytes, int]:
+    """{key: index of its first occurrence} for the keys not in ``seen`` (a memo's keys)."""
+    return {k: i for i, k in reversed(list(enumerate(keys))) if k not in seen}
+
+
 def _seed_from(rng: np.random.Generator) -> int:
     return int(rng.integers(0, 2**31 - 1))
 
@@ -138,11 +143,11 @@ class TokenizerSource:
         return self._denorm(self.tok.decode(self.tok.encode(self._norm(raw_s))))
 
     def reconstruct(self, gt: MotionSet) -> MotionSet:
-        memo: dict[bytes, np.ndarray] = self.memo if self.memo is not None else {}
+        memo = self.memo if self.memo is not None else {}
+        out_keys_memo = self._keys if self.memo is not None else {}
         keys = gt.content_keys
-        first = {k: i for i, k in reversed(list(enumerate(keys))) if k not in memo}
         by_len = defaultdict(list)
-        for i in first.values():
+        for i in first_unseen(keys, memo).values():
             by_len[len(gt.feats[i])].append(i)
         for n, ids in sorted(by_len.items()):
             T_in = n // self.window * self.window
@@ -161,11 +166,9 @@ class TokenizerSource:
             full = f[: len(r)].astype(np.float32)         # a copy: the ground truth stays as drawn
             full[..., self.idx] = r
             out.append(full)
-            if k not in self._keys:                       # the output is a function of the crop
-                self._keys[k] = content_key(full)
-            out_keys.append(self._keys[k])
-        if self.memo is None:
-            self._keys.clear()
+            if k not in out_keys_memo:                    # the output is a function of the crop
+                out_keys_memo[k] = content_key(full)
+            out_keys.append(out_keys_memo[k])
         return MotionSet(list(gt.keys), list(gt.captions), list(gt.tokens), out,
                          extra={"stream": self.stream, "_keys": out_keys})
 
