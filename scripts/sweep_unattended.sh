@@ -5,6 +5,9 @@
 # One run at a time per grid (flock); finished points are reused, failed ones retried; the
 # log goes to logs/<grid>.log and the status table is appended after every run. Exit status:
 # the sweep's (nonzero when a point failed, so cron mails it / systemd marks the unit failed).
+# PARTY_SWEEP_WORKERS=N (default 1) starts N workers on the grid at once, each with
+# OMP_NUM_THREADS = cores / N: they share its points (party.sweep: each claims the next one
+# under a lock on status.json), so N points train side by side.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 stage=${1:?usage: sweep_unattended.sh <gen_ablation|vq_ablation> <grid> [overrides...]}
@@ -23,8 +26,16 @@ if ! flock -n 9; then
   exit 0
 fi
 echo "$(date -Is) ${grid}: start" >> "$log"
-.venv/bin/party "$stage" "$key=$grid" "$@" >> "$log" 2>&1
-rc=$?
+workers=${PARTY_SWEEP_WORKERS:-1}
+threads=$(( $(nproc) / workers )); (( threads >= 1 )) || threads=1
+pids=()
+for ((i = 0; i < workers; i++)); do
+  OMP_NUM_THREADS=$threads .venv/bin/party "$stage" "$key=$grid" "$@" >> "$log" 2>&1 &
+  pids+=($!)
+  sleep 2   # the first worker claims its point before the next starts
+done
+rc=0
+for pid in "${pids[@]}"; do wait "$pid" || rc=$?; done
 .venv/bin/party sweep-status "$out/$grid" >> "$log" 2>&1
 echo "$(date -Is) ${grid}: exit $rc" >> "$log"
 exit $rc

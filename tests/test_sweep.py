@@ -56,3 +56,118 @@ def test_a_changed_point_config_reruns_that_point(tmp_path):
         read_status(out)
     assert main(["sweep-status", str(tmp_path / "nowhere")]) == 2
     assert len(expand(spec)) == 3
+
+
+def _slow_point(log_path):
+    """A point that logs ``label pid`` and waits until two points have started (so two workers
+    each hold one), then returns."""
+    import os
+    import time
+
+    def point(pcfg, p, run):
+        with open(log_path, "a") as f:
+            f.write(f"{p['label']} {os.getpid()}\n")
+        deadline = time.time() + 20
+        while len(open(log_path).read().splitlines()) < 2 and time.time() < deadline:
+            time.sleep(0.05)
+        return {"value": pcfg.v.a}
+    return point
+
+
+def test_two_worker_processes_share_a_grid_and_run_each_point_once(tmp_path):
+    import multiprocessing as mp
+    grid = tmp_path / "g.yaml"
+    grid.write_text("name: g\naxes:\n  a: {w: [v.a=1], x: [v.a=2], y: [v.a=3], z: [v.a=4]}\n")
+    spec, cfg, out = load_sweep(str(grid)), OmegaConf.create({"tracking": {"enabled": False}, "v": {"a": 0}}), tmp_path / "out"
+    log_path = tmp_path / "calls.log"
+    point = _slow_point(log_path)
+    ctx = mp.get_context("fork")
+    workers = [ctx.Process(target=run_grid, args=(cfg, spec, "s", point, out, ["point", "value"])) for _ in range(2)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(60)
+    assert [w.exitcode for w in workers] == [0, 0]
+    calls = [line.split() for line in log_path.read_text().splitlines()]
+    assert sorted(label for label, _ in calls) == ["w", "x", "y", "z"]          # each point exactly once
+    assert len({pid for _, pid in calls}) == 2                                 # by both workers
+    st = read_status(out)
+    assert {k: v["status"] for k, v in st["points"].items()} == dict.fromkeys("wxyz", "done")
+    assert all(str(st["points"][label]["worker"]["pid"]) == pid for label, pid in calls)
+    md = (out / "table.md").read_text()                                        # the last worker's table is complete
+    assert all(f"| {label} | {v} |" in md for label, v in zip("wxyz", (1, 2, 3, 4)))
+
+
+def test_a_running_point_of_a_dead_worker_is_rerun_a_live_workers_is_left_alone(tmp_path):
+    import json
+    import os
+    import socket
+    import subprocess
+    spec, cfg, out = _setup(tmp_path)
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    host = socket.gethostname()
+    out.mkdir()
+    (out / "status.json").write_text(json.dumps({"name": "g", "points": {
+        "x": {"status": "running", "key": "k", "worker": {"host": host, "pid": dead.pid}},
+        "y": {"status": "running", "key": "k", "worker": {"host": host, "pid": os.getppid()}}}}))
+    calls = []
+    rows = run_grid(cfg, spec, "s", lambda pcfg, p, run: calls.append(p["label"]) or {"value": pcfg.v.a}, out,
+                    ["point", "value", "status"])
+    assert calls == ["x", "z"]
+    assert [r.get("status") for r in rows] == [None, "running", None]
+    st = read_status(out)
+    assert st["points"]["y"]["worker"]["pid"] == os.getppid() and st["points"]["y"]["status"] == "running"
+    assert "| y |  | running |" in (out / "table.md").read_text()
+
+
+def test_an_interrupted_point_is_recorded_and_retried_by_the_next_run(tmp_path):
+    spec, cfg, out = _setup(tmp_path)
+    calls, stop = [], {"label": "y"}
+
+    def point(pcfg, p, run):
+        calls.append(p["label"])
+        if p["label"] == stop["label"]:
+            raise KeyboardInterrupt
+        return {"value": pcfg.v.a}
+
+    with pytest.raises(KeyboardInterrupt):
+        run_grid(cfg, spec, "s", point, out, ["point", "value"])
+    st = read_status(out)
+    assert {k: v["status"] for k, v in st["points"].items()} == {"x": "done", "y": "failed", "z": "pending"}
+    assert st["points"]["y"]["error"] == "interrupted (KeyboardInterrupt)"
+    calls.clear()
+    stop["label"] = None
+    assert [r["value"] for r in run_grid(cfg, spec, "s", point, out, ["point", "value"])] == [1, 2, 3]
+    assert calls == ["y", "z"]
+
+
+def test_sweep_unattended_starts_n_workers_and_exits_nonzero_when_one_fails(tmp_path):
+    """scripts/sweep_unattended.sh with PARTY_SWEEP_WORKERS=2, against a stand-in ``party``."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(repo / "scripts/sweep_unattended.sh", tmp_path / "scripts")
+    (tmp_path / "params.yaml").write_text("generator: {ablation: {out_dir: data/ablations}}\n")
+    bin_ = tmp_path / ".venv/bin"
+    bin_.mkdir(parents=True)
+    (bin_ / "python").symlink_to(sys.executable)
+    calls = tmp_path / "calls"
+    (bin_ / "party").write_text(f"#!/usr/bin/env bash\necho \"$OMP_NUM_THREADS $*\" >> {calls}\n"
+                                f"[[ $1 == sweep-status ]] && exit 0\n"
+                                f"[[ $(grep -c gen_ablation {calls}) == 2 ]] && exit 3\nexit 0\n")
+    (bin_ / "party").chmod(0o755)
+    env = {**os.environ, "PARTY_SWEEP_WORKERS": "2"}
+    r = subprocess.run(["bash", "scripts/sweep_unattended.sh", "gen_ablation", "gen_tab5", "a=1"], cwd=tmp_path,
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 3, r.stderr
+    lines = calls.read_text().splitlines()
+    threads = max(1, len(os.sched_getaffinity(0)) // 2)      # what nproc counts
+    assert lines[:2] == [f"{threads} gen_ablation generator.ablation.sweep=gen_tab5 a=1"] * 2
+    assert lines[2].endswith("sweep-status data/ablations/gen_tab5")
+    log = (tmp_path / "logs/gen_tab5.log").read_text()
+    assert "gen_tab5: start" in log and "gen_tab5: exit 3" in log

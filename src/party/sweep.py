@@ -20,19 +20,30 @@ writes ``table.md`` / ``table.csv`` with the given columns plus one column per a
 
 Unattended: ``<out_dir>/status.json`` records every point (``running`` / ``done`` /
 ``failed`` with the error, the MLflow run id, start and end times, the hash of the
-point's config), rewritten atomically as points start and end; ``party sweep-status
-<out_dir>`` prints it. A point that raises is recorded ``failed`` (its MLflow run FAILED)
-and the grid goes on; at the end the tables are written with the failed rows and the
-stage raises, naming them (a nonzero exit for cron). Rerunning a grid reuses the row of
-every ``done`` point whose config hash is unchanged, so an interrupted or partly failed
-sweep resumes where it stopped.
+point's config, the worker running it), rewritten atomically as points start and end;
+``party sweep-status <out_dir>`` prints it. A point that raises is recorded ``failed`` (its
+MLflow run FAILED) and the grid goes on; at the end the tables are written with the failed
+rows and the stage raises, naming them (a nonzero exit for cron). Rerunning a grid reuses
+the row of every ``done`` point whose config hash is unchanged, so an interrupted or partly
+failed sweep resumes where it stopped.
+
+Workers: several processes running the same grid into the same ``out_dir`` share it. Each
+claims the next point that is neither done (same config) nor running in a live worker,
+under an exclusive lock on ``<out_dir>/.status.lock`` (read, claim, write), so no point runs
+twice; a ``running`` entry whose process is gone (same host) is claimed again. Every worker
+writes the tables when it runs out of points; the last one to finish writes them complete.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import io
 import itertools
 import logging
+import os
+import socket
+import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -138,69 +149,148 @@ def _write_status(out: Path, status: dict) -> None:
     write_json(out / "status.json", status)
 
 
+@contextlib.contextmanager
+def _locked(out: Path):
+    """Exclusive lock on ``<out>/.status.lock`` for a read-modify-write of ``status.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".status.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _worker_alive(entry: dict) -> bool:
+    """Whether the worker that marked ``entry`` running still runs: a live process on this host
+    other than this one (this process runs one grid at a time); another host's worker counts as live."""
+    from party.io import pid_alive
+    w = entry.get("worker") or {}
+    if w.get("host") != socket.gethostname():
+        return bool(w)
+    return w.get("pid") != os.getpid() and pid_alive(int(w.get("pid", -1)))
+
+
 def status_table(status: dict) -> str:
     """The points of ``status.json`` as a text table (what ``party sweep-status`` prints)."""
     points = status.get("points", {})
     lines = [f"sweep {status.get('name', '?')}: " + ", ".join(
         f"{sum(1 for p in points.values() if p['status'] == k)} {k}" for k in ("done", "running", "failed", "pending"))]
     for label, p in points.items():
-        extra = p.get("error") or p.get("run_id") or ""
+        w = p.get("worker") or {}
+        extra = p.get("error") or " ".join(x for x in (p.get("run_id"), p["status"] == "running" and w
+                                                        and f"pid {w.get('pid')}@{w.get('host')}") if x)
         lines.append(f"  {label:<24} {p['status']:<8} {p.get('finished') or p.get('started') or '':<20} {extra}")
     return "\n".join(lines)
 
 
 def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], dict], out_dir: str | Path,
              columns: Sequence[str], notes: str = "") -> list[dict]:
-    """Run every point of ``spec`` (see the module docstring); returns the table rows.
+    """Run the points of ``spec`` that are not done yet (see the module docstring, also for
+    several workers); returns the table rows.
 
     Call inside the sweep's (parent) run: the parent gets ``sweep.yaml``, one metric per
-    point and column that is a number, and the tables."""
-    import time
+    point it ran and column that is a number, and the tables."""
     points = expand(spec)
+    by_label = {p["label"]: p for p in points}
+    pcfgs = {p["label"]: apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}") for p in points}
+    keys = {label: _point_key(c) for label, c in pcfgs.items()}
     out = Path(out_dir)
     parent = tracking.active_run_id()
     tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
-    old = read_status(out).get("points", {})
-    status = {"name": spec["name"], "sweep": spec["path"],
-              "points": {p["label"]: {"status": "pending"} for p in points}}
+    me = {"host": socket.gethostname(), "pid": os.getpid()}
+    began = time.time()
     now = lambda: time.strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
-    rows, failed = [], []
-    for p in points:
-        pcfg = apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}")
-        key = _point_key(pcfg)
-        prev = old.get(p["label"], {})
-        if prev.get("status") == "done" and prev.get("key") == key and "row" in prev:
-            log.info("sweep %s: point %s done before (%s), reusing its row", spec["name"], p["label"],
-                     prev.get("finished"))
-            status["points"][p["label"]] = prev
-            rows.append(prev["row"])
-            continue
-        log.info("sweep %s: point %s %s", spec["name"], p["label"], p["overrides"])
-        entry = status["points"][p["label"]] = {"status": "running", "key": key, "started": now()}
-        _write_status(out, status)
-        try:
-            with tracking.start_run(pcfg, stage, run_name=f"{spec['name']}/{p['label']}", parent_run_id=parent,
-                                    tags={"party.sweep": spec["name"], "party.sweep_point": p["label"]}) as prun:
-                entry["run_id"] = prun.info.run_id
-                row = {"point": p["label"], **p["axes"], **point_fn(pcfg, p, prun)}
-        except Exception as e:          # recorded, and the grid goes on (KeyboardInterrupt stops it)
-            log.exception("sweep %s: point %s failed", spec["name"], p["label"])
-            entry.update(status="failed", error=f"{type(e).__name__}: {e}"[:500], finished=now())
-            failed.append(p["label"])
-            rows.append({"point": p["label"], **p["axes"], "status": "failed"})
+    tried: set[str] = set()
+
+    def current() -> dict:
+        """status.json with exactly this grid's points (stale entries of points no longer in the grid dropped)."""
+        old = read_status(out).get("points", {})
+        return {"name": spec["name"], "sweep": spec["path"],
+                "points": {label: old.get(label, {"status": "pending"}) for label in by_label}}
+
+    def reusable(label: str, e: dict) -> bool:
+        """Done with this grid's config for the point, its row kept."""
+        return e["status"] == "done" and e.get("key") == keys[label] and "row" in e
+
+    def claimable(label: str, e: dict) -> bool:
+        if label in tried:
+            return False
+        if e["status"] == "done":
+            return not reusable(label, e)
+        if e["status"] == "running":
+            return not _worker_alive(e)
+        if e["status"] == "failed":             # failed before this worker began: retry; since: another worker's
+            return e.get("finished_ts", 0.0) < began
+        return True
+
+    def claim() -> tuple[str, dict] | None:
+        """The next claimable point and its ``running`` entry (written), or None."""
+        with _locked(out):
+            status = current()
+            label = next((lab for lab, e in status["points"].items() if claimable(lab, e)), None)
+            if label is not None:
+                status["points"][label] = {"status": "running", "key": keys[label], "started": now(), "worker": me}
             _write_status(out, status)
+            return None if label is None else (label, dict(status["points"][label]))
+
+    def record(label: str, entry: dict) -> None:
+        with _locked(out):
+            status = current()
+            status["points"][label] = entry
+            _write_status(out, status)
+
+    with _locked(out):                          # report what is reused before starting
+        for label, e in current()["points"].items():
+            if reusable(label, e):
+                log.info("sweep %s: point %s done before (%s), reusing its row", spec["name"], label, e.get("finished"))
+    while (claimed := claim()) is not None:
+        label, entry = claimed
+        tried.add(label)
+        p, pcfg = by_label[label], pcfgs[label]
+        log.info("sweep %s: point %s %s", spec["name"], label, p["overrides"])
+        try:
+            with tracking.start_run(pcfg, stage, run_name=f"{spec['name']}/{label}", parent_run_id=parent,
+                                    tags={"party.sweep": spec["name"], "party.sweep_point": label}) as prun:
+                entry["run_id"] = prun.info.run_id
+                record(label, entry)
+                row = {"point": label, **p["axes"], **point_fn(pcfg, p, prun)}
+        except Exception as e:          # recorded, and the grid goes on
+            log.exception("sweep %s: point %s failed", spec["name"], label)
+            entry.update(status="failed", error=f"{type(e).__name__}: {e}"[:500], finished=now(),
+                         finished_ts=time.time())
+            record(label, entry)
             continue
-        entry.update(status="done", finished=now(), row=row)
-        _write_status(out, status)
-        rows.append(row)
-        tracking.log_metrics({f"{p['label']}.{k}": v for k, v in row.items()
+        except BaseException as e:      # Ctrl-C / SystemExit: recorded (retried by the next run), then stop
+            entry.update(status="failed", error=f"interrupted ({type(e).__name__})", finished=now(),
+                         finished_ts=time.time())
+            record(label, entry)
+            raise
+        entry.update(status="done", finished=now(), finished_ts=time.time(), row=row)
+        record(label, entry)
+        tracking.log_metrics({f"{label}.{k}": v for k, v in row.items()
                               if isinstance(v, (int, float)) and not isinstance(v, bool)})
-    md, csv_text = tables(rows, spec, columns, notes)
-    write_text(out / "table.md", md)
-    write_text(out / "table.csv", csv_text)
+
+    with _locked(out):
+        status = current()
+        _write_status(out, status)
+        rows, failed, busy = [], [], []
+        for label, e in status["points"].items():
+            if reusable(label, e):
+                rows.append(e["row"])
+                continue
+            state = e["status"] if e["status"] != "done" else "stale"
+            (failed if state == "failed" else busy).append(label)
+            rows.append({"point": label, **by_label[label]["axes"], "status": state})
+        md, csv_text = tables(rows, spec, columns, notes)
+        write_text(out / "table.md", md)
+        write_text(out / "table.csv", csv_text)
     tracking.log_file(out / "table.md")
     tracking.log_file(out / "table.csv")
     tracking.log_file(out / "status.json")
+    if busy:
+        log.warning("sweep %s: %d point(s) still running in other workers (%s); the last worker to finish "
+                    "writes the complete table", spec["name"], len(busy), ", ".join(busy))
     if failed:
         raise RuntimeError(f"sweep {spec['name']}: {len(failed)} of {len(points)} points failed ({', '.join(failed)}); "
                            f"see {out / 'status.json'}; rerun the sweep to retry them (finished points are reused)")
