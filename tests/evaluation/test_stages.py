@@ -52,6 +52,11 @@ def test_trained_evaluator_beats_chance_and_shuffle_drops_it(trained):
         assert (out / "finest.tar").exists() and json.loads((out / "metrics.json").read_text())["stream"] == stream
     gt = metrics["holistic"]["test_gt"]
     assert gt["top3"] > 0.5 > 3 / 32                      # chance: 3/32 = 0.094
+    # the last step is always validated (max_steps ending mid-epoch included), so it can be the best
+    for stream, steps in (("holistic", 120), ("arms", 10)):
+        hist = metrics[stream]["val_history"]
+        assert hist[-1]["iter"] == steps and metrics[stream]["best"]["iter"] in [h["iter"] for h in hist]
+        assert min(h["val_loss"] for h in hist) == metrics[stream]["best"]["val_loss"]
     ev = load_trained(tmp / "evaluators/holistic/finest.tar")
     src = GroundTruthSource(load_context(cfg), "test", 196, 4)
     ms = src.draw(np.random.default_rng(0))

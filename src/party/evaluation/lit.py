@@ -70,6 +70,7 @@ class MatchLit(L.LightningModule):
         self.freeze_movement, self.val_batch_size = freeze_movement, val_batch_size
         self.rng = np.random.default_rng(seed)
         self.best: dict | None = None
+        self.history: list[dict] = []      # every validation: step, loss, Top-k, MM-Dist
         self._val: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
         if freeze_movement:
             ev.movement_encoder.requires_grad_(False)
@@ -120,9 +121,11 @@ class MatchLit(L.LightningModule):
             rp = r_precision(t, m, self.val_batch_size, 3, rng=np.random.default_rng(0))
             logs.update({f"evaluator/val_top{k + 1}": float(rp[k]) for k in range(3)})
         self.log_dict(logs)
+        values = {k.split("/")[-1]: float(v) for k, v in logs.items()}
+        self.history.append({"iter": self.global_step, **values})
         if self.best is None or loss < self.best["val_loss"]:
             self.best = {"val_loss": loss, "epoch": self.current_epoch, "iter": self.global_step,
-                         "metrics": {k.split("/")[-1]: float(v) for k, v in logs.items()},
+                         "metrics": values,
                          "state": copy.deepcopy({k: v.cpu() for k, v in self.ev.state_dict().items()})}
 
     def configure_optimizers(self):

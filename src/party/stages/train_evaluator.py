@@ -138,9 +138,13 @@ def run(cfg: DictConfig, run_) -> dict:
     tc = ec.train
     lit = MatchLit(ev, tc.lr, tc.negative_margin, tc.grad_clip, ec.freeze_movement,
                    tc.batch_size, seed)
-    _trainer(cfg, logger, tc.max_steps, tc.max_epochs, tc.val_every_n_epochs).fit(
-        lit, _loader(train_ds, tc.batch_size, True, collate_text_motion, cfg, True),
-        _loader(val_ds, tc.batch_size, False, collate_text_motion, cfg, False))
+    trainer = _trainer(cfg, logger, tc.max_steps, tc.max_epochs, tc.val_every_n_epochs)
+    val_loader = _loader(val_ds, tc.batch_size, False, collate_text_motion, cfg, False)
+    trainer.fit(lit, _loader(train_ds, tc.batch_size, True, collate_text_motion, cfg, True), val_loader)
+    if not lit.history or lit.history[-1]["iter"] != trainer.global_step:
+        # max_steps ended mid-epoch: validate the last weights too, or the steps after the last
+        # epoch end could never be chosen as the best checkpoint
+        trainer.validate(lit, val_loader, verbose=False)
     if lit.best is not None:
         ev.load_state_dict(lit.best["state"])
     ev.cpu().eval()
@@ -148,7 +152,7 @@ def run(cfg: DictConfig, run_) -> dict:
     test_ds = TextMotionDataset(ctx.index, ctx.store, test_split, ctx.normalizer,
                                 bank=ctx.bank(test_split, ec.unit_length), **mk)
     metrics = {"stream": stream, "train_seconds": round(time.time() - t0, 1),
-               "best": {k: v for k, v in (lit.best or {}).items() if k != "state"},
+               "best": {k: v for k, v in (lit.best or {}).items() if k != "state"}, "val_history": lit.history,
                f"{test_split}_gt": test_retrieval(ev, test_ds, tc.batch_size, seed),
                "chance_top1": 1.0 / tc.batch_size, "params": count_params(ev)}
     run_.log_metrics({f"evaluator/{stream}/{k}": v for k, v in log_metrics_flat(metrics).items()})
