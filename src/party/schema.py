@@ -682,6 +682,7 @@ class GenGenerate:
     use_cache: bool = MISSING
     cond_scale: float = MISSING             # classifier-free guidance (1 = off)
     lengths: str = MISSING                  # gt | free
+    min_frames: Optional[int] = MISSING     # free length: no END before this many frames
     texts: Optional[List[str]] = MISSING
     texts_file: Optional[str] = MISSING
     frames: Optional[List[int]] = MISSING

@@ -105,3 +105,34 @@ def test_sampling_is_seeded_and_filters():
     assert (mass_kept >= 0.5).all() and (mass_kept - smallest < 0.5).all()      # the minimal nucleus
     with pytest.raises(ValueError):
         choose(logits, "beam", 1.0, None, None, None)
+
+
+class _EndAtOnce(torch.nn.Module):
+    """A head whose END logit always wins: free-length generation ends before the first code."""
+
+    def __init__(self, head, end):
+        super().__init__()
+        self.inner, self.end = head, end
+
+    def forward(self, x):
+        y = self.inner(x).clone()
+        y[..., self.end] = 1e4
+        return y
+
+
+@pytest.mark.parametrize("kind", ["party", "holistic", "partwise"])
+def test_min_frames_floors_free_lengths_only(kind):
+    m, B = make(kind), 4
+    for s in m.spec.streams:
+        m.gpt[s].head = _EndAtOnce(m.gpt[s].head, m.gpt[s].end)
+    c = torch.randn(B, D_TEXT, generator=torch.Generator().manual_seed(2))
+    first = m.spec.streams[0]
+    assert all(len(x) == 0 for x in gen(m, c, None, "sample", True)[first])        # no floor: ends at once
+    for cache in (True, False):
+        out = gen(m, c, None, "sample", cache, min_frames=40)
+        streams = ["arms", "legs"] if kind == "partwise" else [first]   # party's parts stop with the holistic
+        for s in streams:
+            assert [len(x) for x in out[s]] == [-(-40 // WINDOWS[s])] * B, (s, cache)   # 5 (w 8), 4 (w 12)
+    lengths = {s: torch.full((B,), 2) for s in m.spec.streams}                      # a target wins over the floor
+    out = gen(m, c, lengths, "sample", True, min_frames=40)
+    assert [len(x) for x in out[first]] == [2] * B

@@ -348,9 +348,11 @@ class PartyGenerator(nn.Module):
     def generate(self, text_emb: torch.Tensor, lengths: Mapping[str, torch.Tensor] | None = None,
                  sampling: str = "greedy", temperature: float = 1.0, top_k: int | None = None,
                  top_p: float | None = None, generator: torch.Generator | None = None,
-                 use_cache: bool = True, cond_scale: float = 1.0) -> dict[str, list[torch.Tensor]]:
+                 use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None
+                 ) -> dict[str, list[torch.Tensor]]:
         """Codes per stream and sample (END excluded). ``lengths`` {stream: (B,)} target code counts
-        (END suppressed before, forced at); every stream ends by ``max_tokens`` codes. Runs in eval
+        (END suppressed before, forced at); every stream ends by ``max_tokens`` codes. Without a
+        target, ``min_frames`` suppresses END before ceil(min_frames / window) codes. Runs in eval
         mode (restored after). ``use_cache=False`` recomputes the full prefix at every step.
         ``cond_scale`` s != 1: classifier-free guidance, every stream's logits u + s (l - u) from the
         text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0)."""
@@ -362,7 +364,7 @@ class PartyGenerator(nn.Module):
         try:
             with torch.inference_mode():
                 return _Generation(self, text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
-                                   use_cache, float(cond_scale)).run()
+                                   use_cache, float(cond_scale), min_frames).run()
         finally:
             self.train(was)
 
@@ -370,7 +372,8 @@ class PartyGenerator(nn.Module):
 class _Generation:
     """One batched generation: part-then-holistic cycles (party), or one kind's streams."""
 
-    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool, cond_scale: float):
+    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool, cond_scale: float,
+                 min_frames: int | None = None):
         c = model.norm_text(c)
         self.B, self.cond_scale = c.shape[0], cond_scale
         if cond_scale != 1.0:                      # rows B..2B-1: the null condition, fed the same tokens
@@ -388,6 +391,9 @@ class _Generation:
             if t is not None and (int(t.max()) > self.M or int(t.min()) < 0):
                 raise ValueError(f"target lengths of {s} must lie in [0, {self.M}]")
             self.target[s] = t
+        # free length: no END before min_frames (ceil, so the motion is at least that long)
+        self.min_codes = {s: 0 if min_frames is None else min(-(-int(min_frames) // spec.windows[s]), self.M - 1)
+                          for s in self.streams}
         self.cond = {}
         if spec.kind != "holistic":
             c_parts, _, _ = model._part_conditions(c)
@@ -413,6 +419,9 @@ class _Generation:
             logits = logits.clone()
             logits[:, g.end] = torch.where(k < t, float("-inf"), logits[:, g.end])
             force = force | (k >= t)
+        elif k < self.min_codes[s]:
+            logits = logits.clone()
+            logits[:, g.end] = float("-inf")
         nxt = choose(logits, *self.sampler)
         nxt = torch.where(force, g.end, nxt)
         nxt = torch.where(self.done[s], g.pad, nxt)
