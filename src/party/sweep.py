@@ -35,9 +35,7 @@ writes the tables when it runs out of points; the last one to finish writes them
 """
 from __future__ import annotations
 
-import contextlib
 import csv
-import fcntl
 import io
 import itertools
 import logging
@@ -48,6 +46,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import yaml
+from filelock import FileLock
 from omegaconf import OmegaConf
 
 from party import tracking
@@ -149,16 +148,11 @@ def _write_status(out: Path, status: dict) -> None:
     write_json(out / "status.json", status)
 
 
-@contextlib.contextmanager
-def _locked(out: Path):
-    """Exclusive lock on ``<out>/.status.lock`` for a read-modify-write of ``status.json``."""
+def _locked(out: Path) -> FileLock:
+    """Exclusive lock on ``<out>/.status.lock`` for a read-modify-write of ``status.json`` (the
+    ``filelock`` package, as the MLflow store's lock in ``party.tracking``)."""
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / ".status.lock", "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+    return FileLock(str(out / ".status.lock"))
 
 
 def _worker_alive(entry: dict) -> bool:
