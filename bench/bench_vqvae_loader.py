@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     data = load_stream_data(cfg, stream)
     model = VQVAE(data.in_dim, scfg["model"])
-    lit = VQVAELit(Tokenizer(model, *data.stats(), data.meta()), scfg)
+    lit = VQVAELit(Tokenizer(model, *data.stats(), data.meta()), scfg, cfg.vqvae.metrics)
     opt = torch.optim.AdamW(model.parameters(), lr=float(scfg["optim"]["lr"]),
                             betas=tuple(scfg["optim"]["betas"]))
     crop, bs = crop_length(int(t["crop"]), model.window), int(t["batch_size"])

@@ -25,6 +25,19 @@ def test_trainer_builder_honours_trainer_keys_and_a_stage_section():
     assert "bf16" in str(t.precision) or "bf16" in type(t.strategy.precision_plugin).__name__.lower()
 
 
+def test_precision_auto_is_bf16_only_where_the_cpu_has_it(monkeypatch):
+    import party.training as T
+    cfg = compose(["trainer=cpu", "trainer.precision=auto"], ROOT / "conf")
+    for native, want in ((True, "bf16-mixed"), (False, "32-true")):
+        monkeypatch.setattr(T, "cpu_has_native_bf16", lambda native=native: native)
+        assert trainer_kwargs(cfg)["precision"] == want
+        assert trainer_kwargs(cfg, {"precision": None})["precision"] == want          # null: inherit
+        assert trainer_kwargs(cfg, {"precision": "32-true"})["precision"] == "32-true"  # a value wins
+    monkeypatch.undo()
+    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    assert T.cpu_has_native_bf16() == any(f in flags.split() for f in ("avx512_bf16", "amx_bf16"))
+
+
 def test_config_key_and_resume_checkpoint(tmp_path):
     assert config_key({"lr": 1}, {"index": "a"}) == config_key({"lr": 1.0}, {"index": "a"})   # 1 and 1.0 alike
     assert config_key({"lr": 1}, {"index": "a"}) != config_key({"lr": 1}, {"index": "b"})     # data identity counts

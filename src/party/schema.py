@@ -363,6 +363,11 @@ class VQEval:
 
 
 @dataclass
+class StageTrainer:                          # vqvae.trainer, generator.trainer: trainer.* for one group
+    precision: Optional[str] = MISSING   # null: trainer.precision; auto: bf16-mixed where native
+
+
+@dataclass
 class VQAblation:
     sweep: str = MISSING
     out_dir: str = MISSING
@@ -406,6 +411,7 @@ class Vqvae:
     train: VQTrain = _group(VQTrain)
     metrics: VQMetrics = _group(VQMetrics)
     eval: VQEval = _group(VQEval)
+    trainer: StageTrainer = _group(StageTrainer)
     ablation: VQAblation = _group(VQAblation)
 
 
@@ -711,6 +717,7 @@ class Generator:
     corruption: GenCorruption = _group(GenCorruption)
     optim: GenOptim = _group(GenOptim)
     train: GenTrain = _group(GenTrain)
+    trainer: StageTrainer = _group(StageTrainer)
     generate: GenGenerate = _group(GenGenerate)
     registry: GenRegistry = _group(GenRegistry)
     ablation: GenAblation = _group(GenAblation)

@@ -72,14 +72,47 @@ def resolve_device(name: str | None) -> torch.device:
 
 # --------------------------------------------------------------------------- trainer
 
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX-BF16 in /proc/cpuinfo's
+    flags; False where that file does not exist). Without them oneDNN emulates bf16, no
+    faster than fp32 (AVX-512 without BF16) or much slower (AVX2 only)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    flags = set()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.split(":", 1)[1].split())
+            break
+    return bool(flags & {"avx512_bf16", "amx_bf16"})
+
+
+def resolve_precision(precision: str, accelerator: str) -> str:
+    """Lightning's ``precision`` for ``trainer.precision`` (or a section's): any Lightning value
+    is returned as is; ``auto`` is ``bf16-mixed`` where the device that will train computes bf16
+    natively (a CUDA GPU that supports it; a CPU with AVX512-BF16 or AMX), else ``32-true``.
+    bf16-mixed autocasts matmuls and convolutions; parameters, optimiser state and whatever a
+    module keeps out of autocast (the tokenizers' quantizer) stay fp32."""
+    if precision != "auto":
+        return precision
+    cuda = accelerator in ("auto", "gpu", "cuda") and torch.cuda.is_available()
+    if cuda:
+        return "bf16-mixed" if torch.cuda.is_bf16_supported() else "32-true"
+    return "bf16-mixed" if cpu_has_native_bf16() else "32-true"
+
+
 def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
-    """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning."""
+    """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning (a
+    section key set to null inherits ``trainer.*``); ``precision: auto`` resolved
+    (``resolve_precision``)."""
     from party.config import plain
 
     t = plain(cfg.trainer)
     for k, v in dict(plain(section) or {}).items():
-        if k in TRAINER_KEYS:
+        if k in TRAINER_KEYS and v is not None:
             t[k] = v
+    t["precision"] = resolve_precision(str(t["precision"]), str(t["accelerator"]))
     return {k: t[k] for k in TRAINER_KEYS}
 
 

@@ -176,6 +176,23 @@ def test_diversity_loss_equals_spec_formula():
     assert torch.allclose(m.losses(batch)["div"], diversity_loss(c_prime, batch["text_emb"], LOSS["tau"]))
 
 
+def test_losses_stay_fp32_under_bf16_autocast():
+    """bf16-mixed training (generator.trainer.precision): the diversity loss (cosines / tau = 0.05)
+    is the fp32 one, the cross-entropies and the total come out fp32 and close to fp32's."""
+    g = torch.Generator().manual_seed(3)
+    c, cp = torch.randn(5, 8, generator=g), torch.randn(5, 4, 8, generator=g)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        d16 = diversity_loss(cp.bfloat16(), c, 0.05)
+    assert d16.dtype == torch.float32 and torch.equal(d16, diversity_loss(cp.bfloat16().float(), c, 0.05))
+    m, batch = make("party"), make_batch()
+    m.eval()
+    ref = m.losses(batch)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = m.losses(batch)
+    for k in ("hol", "part", "loss"):
+        assert out[k].dtype == torch.float32 and abs(float(out[k]) - float(ref[k])) < 0.02 * float(ref[k])
+
+
 def test_aux_loss_uses_caption_where_no_movement():
     m, batch = make("party"), make_batch()
     c = batch["text_emb"]

@@ -215,6 +215,25 @@ def test_quantizer_straight_through_and_eval_exact():
     assert torch.equal(out["q"], cb[out["idx"]]) and torch.equal(q.codebook, cb)   # no update in eval
 
 
+def test_quantizer_is_fp32_under_bf16_autocast():
+    """bf16-mixed training (vqvae.trainer.precision): the quantizer's distances, EMA sums and code
+    assignment are those of fp32, whatever dtype the encoder hands it; the decoder's output is fp32."""
+    torch.manual_seed(0)
+    x = torch.randn(2048, 16)
+    ref, amp = EMAQuantizer(64, 16), EMAQuantizer(64, 16)
+    ref.train(), amp.train()
+    torch.manual_seed(1)                          # the same codebook init (random rows of x)
+    out_ref = ref(x)
+    torch.manual_seed(1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out_amp = amp(x)
+    assert torch.equal(out_amp["idx"], out_ref["idx"]) and out_amp["q"].dtype == torch.float32
+    assert torch.equal(amp.code_sum, ref.code_sum) and torch.equal(amp.codebook, ref.codebook)
+    m = VQVAE(D, cfg(8))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert m(torch.randn(2, 32, D))["recon"].dtype == torch.float32
+
+
 def test_lr_schedule():
     o = {"lr": 2e-4, "lr_after": 1e-5, "milestone": 200000, "warmup_steps": 0}
     assert lr_factor(0, o) == 1.0 and lr_factor(199999, o) == 1.0

@@ -9,6 +9,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from party.stages import extract_tokens, vq_ablation
 from party.data.context import load_stream_data
@@ -60,6 +61,18 @@ def test_export_layout_and_metrics(trained):
         assert json.loads((d / "config.json").read_text())["stream"] == s
     tok = load_tokenizer(tmp / "tokenizers" / "arms")
     assert tok.window == 6 and tok.meta["stream"] == "arms" and 0 in tok.meta["stream_joints"]
+
+
+def test_bf16_mixed_training_is_recorded_and_never_resumes_an_fp32_run(trained):
+    """vqvae.trainer.precision=bf16-mixed (what `auto` picks on a CPU with AVX512-BF16): trains,
+    says so in metrics.json, and keys its rolling checkpoints apart from the fp32 run's."""
+    cfg, tmp, metrics = trained
+    assert metrics["holistic"]["precision"] == "32-true"
+    bf = cfg.copy()
+    bf.merge_with(OmegaConf.from_dotlist(["vqvae.trainer.precision=bf16-mixed"]))
+    m = train_tokenizer(bf, "holistic", tmp / "bf16" / "holistic")
+    assert m["precision"] == "bf16-mixed" and m["step"] == 4 and np.isfinite(m["val/mpjpe_mm"])
+    assert len(list((tmp / "ckpt" / "holistic").iterdir())) == 2      # its own resume folder
 
 
 def test_reload_gives_identical_tokens(trained):

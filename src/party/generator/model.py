@@ -302,6 +302,7 @@ class PartyGenerator(nn.Module):
         zero = c.new_zeros(())
         out = {"hol": zero, "part": zero, "div": zero, "aux": zero}
         for s, lg in tf["logits"].items():
+            lg = lg.float()                     # the loss in fp32 also under bf16 autocast
             tgt = tf["targets"][s]
             valid = tgt != self.gpt[s].pad
             ce = F.cross_entropy(lg.flatten(0, 1), tgt.masked_fill(~valid, -100).flatten(), ignore_index=-100)

@@ -29,6 +29,12 @@ def mlp3(dim: int, hidden: int) -> nn.Sequential:
 def diversity_loss(c_prime: torch.Tensor, c: torch.Tensor, tau: float) -> torch.Tensor:
     """``c_prime`` (B, K, D), ``c`` (B, D) -> 0-dim mean over batch and n of L^(n)."""
     K = c_prime.shape[1]
+    c_prime, c = c_prime.float(), c.float()     # fp32 also under bf16 autocast: cosines / 0.05
+    with torch.autocast(c.device.type, enabled=False):
+        return _diversity(c_prime, c, K, tau)
+
+
+def _diversity(c_prime: torch.Tensor, c: torch.Tensor, K: int, tau: float) -> torch.Tensor:
     cp = F.normalize(c_prime, dim=-1)
     pos = (cp * F.normalize(c, dim=-1)[:, None]).sum(-1, keepdim=True) / tau     # (B, K, 1)
     neg = cp @ cp.transpose(1, 2) / tau                                            # (B, K, K)

@@ -33,7 +33,7 @@ from party.generator.lit import GeneratorLit
 from party.generator.model import GeneratorSpec, PartyGenerator
 from party.io import atomic_dir, write_bytes, write_json
 from party.training import (AtomicCheckpoint, build_trainer, config_key, data_identity, file_sha, resume_checkpoint,
-                            resume_dir)
+                            resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 FORMAT = "party.generator/1"
@@ -181,9 +181,11 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
     torch.manual_seed(seed)
     lit = GeneratorLit(model, g.optim, g.corruption, train_ds.codebook_sizes, seed)
     train_cfg = {k: v for k, v in plain(t).items() if k not in _RESUME_IGNORES}
+    precision = trainer_kwargs(cfg, g.trainer)["precision"]
     key = config_key({"model": plain(g.model), "loss": plain(g.loss), "optim": plain(g.optim),
                       "corruption": plain(g.corruption), "train": train_cfg, "method": plain(g.methods[method]),
-                      "seed": seed}, _identity(cfg))
+                      "seed": seed, **({} if precision == "32-true" else {"precision": precision})},
+                     _identity(cfg))
     rdir = resume_dir(g.resume_dir, method, key)
     ckpt = rdir / "last.ckpt"
     resume = resume_checkpoint(rdir, t.resume, "generator.train.resume")
@@ -192,11 +194,13 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                   "party.resumed": str(resume is not None).lower()})
     if resume is not None:
         tracking.link_resumed(run, key)
-    run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds)})
+    run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds),
+                    "precision": precision})
     t0 = time.time()
     figures = _figures(cfg, run, val_ds, method, model.spec.kind)
     trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
                             callbacks=[AtomicCheckpoint(ckpt, t.ckpt_every), *figures, *(callbacks or [])],
+                            section=g.trainer,
                             val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
                             default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None)
     if resume:
@@ -206,7 +210,8 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                 weights_only=True)
     final = _evaluate(model, val_loader)
     metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
-               "final": final, "untrained": untrained, "train_seconds_this_run": round(time.time() - t0, 1)}
+               "final": final, "untrained": untrained, "precision": precision,
+               "train_seconds_this_run": round(time.time() - t0, 1)}
     run.log_metrics({f"final/{k.split('/', 1)[1]}": v for k, v in final.items()}, step=int(trainer.global_step))
     run.log_metrics({f"untrained/{k.split('/', 1)[1]}": v for k, v in untrained.items()})
     if trainer.is_global_zero:

@@ -94,7 +94,14 @@ class EMAQuantizer(nn.Module):
 
     # -------------------------------------------------------------- forward
     def forward(self, x: torch.Tensor) -> dict:
-        """x (N, D) -> dict(q straight-through (N, D), idx (N,), loss_app, perplexity, resets)."""
+        """x (N, D) -> dict(q straight-through (N, D), idx (N,), loss_app, perplexity, resets).
+
+        Always in fp32, also under autocast (bf16-mixed training): nearest-code distances and
+        the EMA sums in bf16 would assign codes and move the codebook by 3-digit roundings."""
+        with torch.autocast(x.device.type, enabled=False):
+            return self._forward(x.float())
+
+    def _forward(self, x: torch.Tensor) -> dict:
         if self.training and not bool(self.initialized):
             self.init_codebook(x)
         idx = self.nearest(x.detach())

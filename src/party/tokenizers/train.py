@@ -32,7 +32,7 @@ from party.tokenizers.data import BucketDataset, bucket_loader, eval_sequences, 
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.vqvae import Tokenizer, build_tokenizer, save_tokenizer
 from party.training import (AtomicCheckpoint, build_trainer, count_params, data_identity, resume_checkpoint,
-                            resume_dir)
+                            resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,10 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     val_seqs, val_keys = eval_sequences(data, ev.split, ev.max_clips)
     val_loader = bucket_loader(BucketDataset(val_seqs, val_keys, model.window, model.tail,
                                              ev.batch_size))
+    precision = trainer_kwargs(cfg, cfg.vqvae.trainer)["precision"]
+    # bf16 steps differ from fp32 ones (32-true adds nothing: keys from before the switch hold)
     key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim,
+                            **({} if precision == "32-true" else {"precision": precision}),
                             **data_identity(data.index.path, data.index.root)})
     rdir = resume_dir(cfg.vqvae.resume_dir, stream, key)
     ckpt = rdir / "last.ckpt"
@@ -87,10 +90,11 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     if resume is not None:
         tracking.link_resumed(run, key)
     t0 = time.time()
-    run.log_params({"n_params": n_params, "train_crop_frames": crop,
+    run.log_params({"n_params": n_params, "train_crop_frames": crop, "precision": precision,
                     "train_clips": len(loader.dataset), "val_clips": len(val_seqs)})
     trainer = build_trainer(cfg, max_steps=t["max_steps"], logger=tracking.lightning_logger(cfg, run),
                             callbacks=[AtomicCheckpoint(ckpt, t["ckpt_every"]), *(callbacks or [])],
+                            section=cfg.vqvae.trainer,
                             val_check_interval=t["val_every"], check_val_every_n_epoch=None,
                             default_root_dir=str(rdir),
                             gradient_clip_val=float(scfg["optim"]["grad_clip"] or 0) or None)
@@ -104,7 +108,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
                                dict(cfg.vqvae.diagnostics))
     metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
                "window": model.window, "codebook_size": model.quantizer.n_codes,
-               "resets_total": int(model.quantizer.resets_total),
+               "resets_total": int(model.quantizer.resets_total), "precision": precision,
                "train_seconds_this_run": round(time.time() - t0, 1)}
     metrics["diagnostics"] = diag
     run.log_metrics({f"final/{k.split('/')[-1]}": v for k, v in lit.val_results.items()},

@@ -139,7 +139,8 @@ class VQVAE(nn.Module):
             recon = self.decoder(q)
         else:
             recon = self.decode(idx)      # eval: exactly what decoding the stored tokens gives
-        return {"recon": recon, "target": x, "frame_mask": frame_mask, "node_mask": node_mask,
+        # fp32 out of the decoder also under autocast: the losses and joint recovery stay fp32
+        return {"recon": recon.float(), "target": x, "frame_mask": frame_mask, "node_mask": node_mask,
                 "idx": idx, "alpha": alpha, "loss_app": out["loss_app"],
                 "perplexity": out["perplexity"], "resets": out["resets"], "usage": out["usage"]}
 
