@@ -1,4 +1,7 @@
 """party.sweep.run_grid for unattended sweeps: status.json, failures recorded, resume reuses done points."""
+import subprocess
+import sys
+
 import pytest
 from omegaconf import OmegaConf
 
@@ -40,6 +43,16 @@ def test_a_failing_point_is_recorded_the_rest_run_and_the_stage_fails(tmp_path, 
     assert calls == ["y"]
     assert [r["value"] for r in rows] == [10, 20, 30]
     assert main(["sweep-status", str(out)]) == 0
+
+
+def test_sweep_status_into_a_pipe_closed_early_is_quiet(tmp_path):
+    """`party sweep-status ... | head`: head's one line, no BrokenPipeError traceback."""
+    spec, cfg, out = _setup(tmp_path)
+    run_grid(cfg, spec, "s", lambda pcfg, p, run: {"value": 1}, out, ["point", "value"])
+    party = f'{sys.executable} -c "import sys; from party.cli import main; sys.exit(main())"'
+    r = subprocess.run(["bash", "-c", f"{party} sweep-status {' '.join([out.name] * 5000)} | head -1"],
+                       capture_output=True, text=True, timeout=120, cwd=out.parent)   # ~1 MB of output
+    assert r.stdout.count("\n") == 1 and "Error" not in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_a_changed_point_config_reruns_that_point(tmp_path):

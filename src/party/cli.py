@@ -256,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:          # a wrong type or an unknown key: the message names it
         print(f"party: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:           # the reader went away (`party sweep-status ... | head`): no
+        # traceback; stdout goes to devnull so the interpreter's last flush cannot raise again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 def _main(argv: list[str] | None = None) -> int:
