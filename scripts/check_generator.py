@@ -45,6 +45,8 @@ def main() -> None:
     ap.add_argument("--generators", default=None, help="folder of trained methods (default: generator.out_dir)")
     ap.add_argument("--cond-scale", type=float, default=None,
                     help="classifier-free guidance scale (default: generator.generate.cond_scale)")
+    ap.add_argument("--part-cond-scale", type=float, default=None,
+                    help="the Arms / Legs streams' scale (default: generator.generate.part_cond_scale)")
     ap.add_argument("--sampling", default="sample", choices=["sample", "greedy"])
     a = ap.parse_args()
     cfg = OmegaConf.load(a.params)
@@ -60,6 +62,8 @@ def main() -> None:
     gcfg = OmegaConf.merge(cfg.generator.generate, {"sampling": a.sampling})
     if a.cond_scale is not None:
         gcfg.cond_scale = a.cond_scale
+    if a.part_cond_scale is not None:
+        gcfg.part_cond_scale = a.part_cond_scale
     report = {}
     for m in a.methods:
         model, meta = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
@@ -75,8 +79,10 @@ def main() -> None:
             rows[p] = {"kind": kind, "side": s, "kept": float(np.mean(ok)), "other_side": float(np.mean(mirrored))}
         report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()])),
                      "other_side": float(np.mean([r["other_side"] for r in rows.values()])),
-                     "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale)}
-        print(f"{m} ({a.sampling}, cond_scale {float(gcfg.cond_scale):g}): "
+                     "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale),
+                     "part_cond_scale": gcfg.get("part_cond_scale")}
+        print(f"{m} ({a.sampling}, cond_scale {float(gcfg.cond_scale):g}, part_cond_scale "
+              f"{gcfg.get('part_cond_scale')}): "
               + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
               + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})")
     if a.out:

@@ -687,6 +687,7 @@ class GenGenerate:
     seed: int = MISSING
     use_cache: bool = MISSING
     cond_scale: float = MISSING             # classifier-free guidance (1 = off)
+    part_cond_scale: Optional[float] = MISSING   # the Arms / Legs streams' scale (null: cond_scale)
     lengths: str = MISSING                  # gt | free
     min_frames: Optional[int] = MISSING     # free length: no END before this many frames
     texts: Optional[List[str]] = MISSING

@@ -12,16 +12,18 @@ def cfg_model(kind, cond_drop=0.3):
 
 
 @pytest.mark.parametrize("kind", ["party", "holistic", "partwise"])
-@pytest.mark.parametrize("scale", [2.5, 0.0])
-def test_guided_generation_is_the_argmax_of_the_guided_logits(kind, scale):
+@pytest.mark.parametrize("scale,part_scale", [(2.5, None), (0.0, None), (1.0, 4.0), (2.0, 3.0)])
+def test_guided_generation_is_the_argmax_of_the_guided_logits(kind, scale, part_scale):
     """Greedy guided generation fed back through teacher forcing with the text (l) and with the null
     condition (u): the argmax of u + s (l - u) (END suppressed before the target) is every generated
-    token of every stream; cached and recomputed generation agree."""
+    token of every stream, s = part_scale in the Arms / Legs streams when given; cached and
+    recomputed generation agree."""
     m, B = cfg_model(kind), 4
     c = torch.randn(B, D_TEXT, generator=torch.Generator().manual_seed(5))
     lengths = targets(B, 2)
-    out = gen(m, c, lengths, "greedy", True, cond_scale=scale)
-    again = gen(m, c, lengths, "greedy", False, cond_scale=scale)
+    kw = {"cond_scale": scale, "part_cond_scale": part_scale}
+    out = gen(m, c, lengths, "greedy", True, **kw)
+    again = gen(m, c, lengths, "greedy", False, **kw)
     assert {s: [x.tolist() for x in v] for s, v in out.items()} == {s: [x.tolist() for x in v] for s, v in again.items()}
     n = {s: torch.tensor([len(x) for x in out[s]]) for s in out}
     codes = {s: torch.nn.functional.pad(torch.nn.utils.rnn.pad_sequence(out[s], batch_first=True,
@@ -33,7 +35,8 @@ def test_guided_generation_is_the_argmax_of_the_guided_logits(kind, scale):
         null = m({"text_emb": torch.zeros_like(c), "codes": codes, "lengths": n})
     for s in out:
         assert not torch.allclose(cond[s], null[s]), s          # the text matters: the check can fail
-        guided = null[s] + scale * (cond[s] - null[s])
+        s_ = part_scale if part_scale is not None and s != "holistic" else scale
+        guided = null[s] + s_ * (cond[s] - null[s])
         for b in range(B):
             lb = guided[b, :len(out[s][b])].clone()
             lb[:, VOCAB[s]] = float("-inf")
@@ -44,6 +47,8 @@ def test_guidance_needs_a_model_trained_on_the_null_condition():
     m = cfg_model("party", cond_drop=0.0)
     with pytest.raises(ValueError, match="cond_drop"):
         gen(m, torch.randn(2, D_TEXT), None, "greedy", True, cond_scale=3.0)
+    with pytest.raises(ValueError, match="cond_drop"):
+        gen(m, torch.randn(2, D_TEXT), None, "greedy", True, part_cond_scale=3.0)
     with pytest.raises(ValueError, match="cond_drop"):
         build("party", 0, {"cond_drop": 1.0})
 

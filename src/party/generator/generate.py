@@ -53,7 +53,8 @@ class Decoder:
 
 def _sampling_kw(gcfg) -> dict:
     return {"sampling": gcfg.sampling, "temperature": gcfg.temperature, "top_k": gcfg.top_k, "top_p": gcfg.top_p,
-            "use_cache": gcfg.use_cache, "cond_scale": gcfg.cond_scale, "min_frames": gcfg.min_frames}
+            "use_cache": gcfg.use_cache, "cond_scale": gcfg.cond_scale, "part_cond_scale": gcfg.part_cond_scale,
+            "min_frames": gcfg.min_frames}
 
 
 def _target_lengths(stores, clip_ids: Sequence[str], windows, max_tokens: int) -> dict[str, torch.Tensor]:

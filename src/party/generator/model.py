@@ -349,23 +349,27 @@ class PartyGenerator(nn.Module):
     def generate(self, text_emb: torch.Tensor, lengths: Mapping[str, torch.Tensor] | None = None,
                  sampling: str = "greedy", temperature: float = 1.0, top_k: int | None = None,
                  top_p: float | None = None, generator: torch.Generator | None = None,
-                 use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None
-                 ) -> dict[str, list[torch.Tensor]]:
+                 use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None,
+                 part_cond_scale: float | None = None) -> dict[str, list[torch.Tensor]]:
         """Codes per stream and sample (END excluded). ``lengths`` {stream: (B,)} target code counts
         (END suppressed before, forced at); every stream ends by ``max_tokens`` codes. Without a
         target, ``min_frames`` suppresses END before ceil(min_frames / window) codes. Runs in eval
         mode (restored after). ``use_cache=False`` recomputes the full prefix at every step.
         ``cond_scale`` s != 1: classifier-free guidance, every stream's logits u + s (l - u) from the
-        text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0)."""
-        if cond_scale != 1.0 and self.spec.cond_drop <= 0:
-            raise ValueError(f"cond_scale {cond_scale} needs a model trained with generator.model.cond_drop > 0 "
-                             "(this one never saw the null condition); set generator.generate.cond_scale=1")
+        text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0);
+        ``part_cond_scale`` (None: ``cond_scale``) is the scale of the Arms / Legs streams alone."""
+        scales = {s: float(cond_scale if part_cond_scale is None or s not in self.parts else part_cond_scale)
+                  for s in self.spec.streams}
+        if any(v != 1.0 for v in scales.values()) and self.spec.cond_drop <= 0:
+            raise ValueError(f"guidance scales {scales} need a model trained with generator.model.cond_drop > 0 "
+                             "(this one never saw the null condition); set generator.generate.cond_scale=1 "
+                             "and generator.generate.part_cond_scale=null")
         was = self.training
         self.eval()
         try:
             with torch.inference_mode():
                 return _Generation(self, text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
-                                   use_cache, float(cond_scale), min_frames).run()
+                                   use_cache, scales, min_frames).run()
         finally:
             self.train(was)
 
@@ -373,11 +377,11 @@ class PartyGenerator(nn.Module):
 class _Generation:
     """One batched generation: part-then-holistic cycles (party), or one kind's streams."""
 
-    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool, cond_scale: float,
-                 min_frames: int | None = None):
+    def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool,
+                 scales: Mapping[str, float], min_frames: int | None = None):
         c = model.norm_text(c)
-        self.B, self.cond_scale = c.shape[0], cond_scale
-        if cond_scale != 1.0:                      # rows B..2B-1: the null condition, fed the same tokens
+        self.B, self.scales = c.shape[0], scales
+        if any(v != 1.0 for v in scales.values()):  # rows B..2B-1: the null condition, fed the same tokens
             c = torch.cat([c, torch.zeros_like(c)])
         self.m, self.c, self.sampler, self.use_cache = model, c, sampler, use_cache
         spec = model.spec
@@ -413,7 +417,7 @@ class _Generation:
         g = self.m.gpt[s]
         if self.N != self.B:                     # classifier-free guidance: u + s (l - u)
             cond, null = logits[:self.B], logits[self.B:]
-            logits = null + self.cond_scale * (cond - null)
+            logits = null + self.scales[s] * (cond - null)
         force = torch.full((self.B,), k >= self.M, dtype=torch.bool, device=logits.device)
         t = self.target[s]
         if t is not None:
