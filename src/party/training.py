@@ -102,6 +102,13 @@ def resolve_precision(precision: str, accelerator: str) -> str:
     return "bf16-mixed" if cpu_has_native_bf16() else "32-true"
 
 
+def precision_identity(precision: str) -> dict[str, str]:
+    """What a resume key adds for a resolved ``precision``: a bf16 step differs from an fp32 one,
+    so anything but ``32-true`` is part of the key; ``32-true`` adds nothing, so keys written
+    before precision was a switch still match."""
+    return {} if precision == "32-true" else {"precision": precision}
+
+
 def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
     """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning (a
     section key set to null inherits ``trainer.*``); ``precision: auto`` resolved

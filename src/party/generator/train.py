@@ -32,8 +32,8 @@ from party.generator.data import build_generator_data, collate_generator
 from party.generator.lit import GeneratorLit
 from party.generator.model import GeneratorSpec, PartyGenerator
 from party.io import atomic_dir, write_bytes, write_json
-from party.training import (AtomicCheckpoint, build_trainer, config_key, data_identity, file_sha, resume_checkpoint,
-                            resume_dir, trainer_kwargs)
+from party.training import (AtomicCheckpoint, build_trainer, config_key, data_identity, file_sha, precision_identity,
+                            resume_checkpoint, resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 FORMAT = "party.generator/1"
@@ -184,7 +184,7 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
     precision = trainer_kwargs(cfg, g.trainer)["precision"]
     key = config_key({"model": plain(g.model), "loss": plain(g.loss), "optim": plain(g.optim),
                       "corruption": plain(g.corruption), "train": train_cfg, "method": plain(g.methods[method]),
-                      "seed": seed, **({} if precision == "32-true" else {"precision": precision})},
+                      "seed": seed, **precision_identity(precision)},
                      _identity(cfg))
     rdir = resume_dir(g.resume_dir, method, key)
     ckpt = rdir / "last.ckpt"

@@ -31,8 +31,8 @@ from party.data.context import load_stream_data
 from party.tokenizers.data import BucketDataset, bucket_loader, eval_sequences, train_loader
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.vqvae import Tokenizer, build_tokenizer, save_tokenizer
-from party.training import (AtomicCheckpoint, build_trainer, count_params, data_identity, resume_checkpoint,
-                            resume_dir, trainer_kwargs)
+from party.training import (AtomicCheckpoint, build_trainer, count_params, data_identity, precision_identity,
+                            resume_checkpoint, resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +77,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     val_loader = bucket_loader(BucketDataset(val_seqs, val_keys, model.window, model.tail,
                                              ev.batch_size))
     precision = trainer_kwargs(cfg, cfg.vqvae.trainer)["precision"]
-    # bf16 steps differ from fp32 ones (32-true adds nothing: keys from before the switch hold)
-    key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim,
-                            **({} if precision == "32-true" else {"precision": precision}),
+    key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim, **precision_identity(precision),
                             **data_identity(data.index.path, data.index.root)})
     rdir = resume_dir(cfg.vqvae.resume_dir, stream, key)
     ckpt = rdir / "last.ckpt"
