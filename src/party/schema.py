@@ -654,6 +654,7 @@ class GenOptim:
 @dataclass
 class GenTrain:
     batch_size: int = MISSING
+    bucket_pool: int = MISSING         # 0: uniform random batches; N: length-bucketed within pools of N batches
     val_split: str = MISSING
     max_steps: int = MISSING
     val_every: int = MISSING

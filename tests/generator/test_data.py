@@ -231,6 +231,39 @@ def test_length_bucket_sampler():
     assert len(list(d)) == len(d) == 9 and all(len(b) == 4 for b in d)
 
 
+def test_length_bucket_sampler_shards_across_ranks(monkeypatch):
+    """Under DDP each rank takes every W-th batch of the one epoch order, the same number each."""
+    lengths = np.random.default_rng(1).integers(1, 50, 45)
+    whole = list(LengthBucketBatchSampler(lengths, batch_size=4, pool=3, seed=5, drop_last=True))   # 11 batches
+    shards = []
+    for rank in range(3):
+        monkeypatch.setattr(LengthBucketBatchSampler, "_rank_world", staticmethod(lambda r=rank: (r, 3)))
+        s = LengthBucketBatchSampler(lengths, batch_size=4, pool=3, seed=5, drop_last=True)
+        shards.append(list(s))
+        assert len(shards[-1]) == len(s) == 3
+    assert [b for round_ in zip(*shards) for b in round_] == whole[:9]
+
+
+def test_train_loader_buckets_by_length(tmp_path):
+    """generator.train.bucket_pool > 0: training batches of similar length (less padding than
+    uniform random batches, the same samples per epoch); 0: uniform random batches."""
+    from party.generator.train import _loader
+
+    ds = _dataset(tmp_path)
+    n = sum(ds.lengths(s) for s in ds.streams)
+
+    def spread(loader):
+        return [int(np.ptp(n[idx])) for idx in loader.batch_sampler]
+
+    bucketed, uniform = _loader(ds, 4, True, 0, 0, bucket_pool=50), _loader(ds, 4, True, 0, 0)
+    assert isinstance(bucketed.batch_sampler, LengthBucketBatchSampler)
+    assert sum(spread(bucketed)) < sum(spread(uniform))
+    seen = sorted(i for idx in bucketed.batch_sampler for i in idx)
+    assert len(seen) == len(set(seen)) == 4 * (len(ds) // 4)
+    b = next(iter(bucketed))
+    assert b["codes"]["holistic"].shape[0] == 4
+
+
 def test_build_generator_data_from_config(tmp_path):
     from party.config import compose
 

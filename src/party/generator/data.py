@@ -220,7 +220,12 @@ def corrupt_codes(codes: torch.Tensor, lengths: torch.Tensor, K: int, max_prob: 
 class LengthBucketBatchSampler(Sampler[list[int]]):
     """Batches of samples of similar length: each epoch shuffles the samples, cuts them into pools
     of ``batch_size * pool`` samples, sorts each pool by length and cuts it into batches, then
-    shuffles the batches. ``seed`` + the epoch number (``set_epoch``) fix the order."""
+    shuffles the batches. ``seed`` + the epoch number (``set_epoch``) fix the order.
+
+    Under DDP (``torch.distributed`` initialised with world size W > 1) rank r takes batches
+    r, r + W, ... of that order, every rank the same number (the last incomplete round is dropped),
+    so each optimizer step averages W batches of one epoch's order; Lightning must not inject its
+    own sampler (``use_distributed_sampler=False``)."""
 
     def __init__(self, lengths: Sequence[int], batch_size: int, pool: int, seed: int, drop_last: bool):
         if int(batch_size) < 1 or int(pool) < 1:
@@ -246,13 +251,24 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
                     batches.append([int(i) for i in batch])
         return [batches[i] for i in rng.permutation(len(batches))]
 
+    @staticmethod
+    def _rank_world() -> tuple[int, int]:
+        import torch.distributed as dist
+        if dist.is_available() and dist.is_initialized():
+            return dist.get_rank(), dist.get_world_size()
+        return 0, 1
+
     def __iter__(self) -> Iterator[list[int]]:
-        return iter(self._batches())
+        batches = self._batches()
+        rank, world = self._rank_world()
+        if world > 1:
+            batches = batches[rank:len(batches) - len(batches) % world:world]
+        return iter(batches)
 
     def __len__(self) -> int:
         full, rest = divmod(len(self.lengths), self.batch_size * self.pool)
         tail = rest // self.batch_size if self.drop_last else -(-rest // self.batch_size)
-        return full * self.pool + tail
+        return (full * self.pool + tail) // self._rank_world()[1]
 
 
 def open_token_stores(tokens_dir: str | Path, streams: Sequence[str]) -> dict[str, TokenStore]:

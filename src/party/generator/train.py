@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader
 
 from party import tracking
 from party.config import plain
-from party.generator.data import build_generator_data, collate_generator
+from party.generator.data import LengthBucketBatchSampler, build_generator_data, collate_generator
 from party.generator.lit import GeneratorLit
 from party.generator.model import GeneratorSpec, PartyGenerator
 from party.io import atomic_dir, write_bytes, write_json
@@ -105,10 +105,20 @@ def load_generator(path: str | Path, map_location="cpu") -> tuple[PartyGenerator
     return model.eval(), obj["meta"]
 
 
-def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int) -> DataLoader:
-    return DataLoader(ds, batch_size=min(batch_size, len(ds)), shuffle=shuffle, drop_last=shuffle,
-                      collate_fn=lambda items: collate_generator(items, ds.pad), num_workers=workers,
-                      generator=torch.Generator().manual_seed(seed), persistent_workers=workers > 0)
+def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int, bucket_pool: int = 0) -> DataLoader:
+    """Training (``shuffle``): uniform random batches, or with ``bucket_pool`` > 0 batches of
+    similar length (``LengthBucketBatchSampler`` over the summed code lengths of every stream).
+    Validation: the dataset in order."""
+    collate = lambda items: collate_generator(items, ds.pad)  # noqa: E731
+    batch_size = min(batch_size, len(ds))
+    if shuffle and bucket_pool > 0:
+        lengths = sum(ds.lengths(s) for s in ds.streams)
+        sampler = LengthBucketBatchSampler(lengths, batch_size, bucket_pool, seed, drop_last=True)
+        return DataLoader(ds, batch_sampler=sampler, collate_fn=collate, num_workers=workers,
+                          persistent_workers=workers > 0)
+    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=shuffle, collate_fn=collate,
+                      num_workers=workers, generator=torch.Generator().manual_seed(seed),
+                      persistent_workers=workers > 0)
 
 
 def _identity(cfg) -> dict:
@@ -202,10 +212,12 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                             callbacks=[AtomicCheckpoint(ckpt, t.ckpt_every), *figures, *(callbacks or [])],
                             section=g.trainer,
                             val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
-                            default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None)
+                            default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None,
+                            # a bucketing sampler shards itself across DDP ranks
+                            use_distributed_sampler=t.bucket_pool == 0)
     if resume:
         log.info("resuming generator %s from %s", method, resume)
-    trainer.fit(lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed),
+    trainer.fit(lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
                 val_loader, ckpt_path=str(resume) if resume else None,
                 weights_only=True)
     final = _evaluate(model, val_loader)
