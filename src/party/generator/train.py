@@ -191,6 +191,8 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
     torch.manual_seed(seed)
     lit = GeneratorLit(model, g.optim, g.corruption, train_ds.codebook_sizes, seed)
     train_cfg = {k: v for k, v in plain(t).items() if k not in _RESUME_IGNORES}
+    if not train_cfg["bucket_pool"]:
+        del train_cfg["bucket_pool"]      # uniform batches: the keys of runs from before the switch existed
     precision = trainer_kwargs(cfg, g.trainer)["precision"]
     key = config_key({"model": plain(g.model), "loss": plain(g.loss), "optim": plain(g.optim),
                       "corruption": plain(g.corruption), "train": train_cfg, "method": plain(g.methods[method]),
