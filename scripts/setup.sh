@@ -18,14 +18,22 @@ pip_install() {
   .venv/bin/python -m pip install -q --upgrade pip
   .venv/bin/python -m pip install -q -e ".[dev]"
 }
-if [ "${PARTY_INSTALLER:-uv}" = uv ] && .venv/bin/python -m pip install -q "uv>=0.9" 2>/dev/null; then
-  mapfile -t SOURCES < <(.venv/bin/python scripts/pip_sources.py)
-  if ! .venv/bin/python -m uv pip install -q --python .venv/bin/python --compile-bytecode \
-       --index-strategy unsafe-best-match "${SOURCES[@]}" -e ".[dev]"; then
-    echo "setup.sh: uv could not install the requirements; installing with pip" >&2
-    pip_install
+uv_install() {
+  local listing sources=()
+  if ! .venv/bin/python -m pip install -q "uv>=0.9" 2>/dev/null; then
+    echo "setup.sh: uv is not installable here" >&2; return 1
   fi
-else
+  if ! listing=$(.venv/bin/python scripts/pip_sources.py); then
+    echo "setup.sh: could not read pip's configured sources for uv" >&2; return 1
+  fi
+  while IFS= read -r a; do [ -n "$a" ] && sources+=("$a"); done <<< "$listing"   # none configured: no arguments
+  .venv/bin/python -m uv pip install -q --python .venv/bin/python --compile-bytecode \
+    --index-strategy unsafe-best-match "${sources[@]}" -e ".[dev]"
+}
+if [ "${PARTY_INSTALLER:-uv}" != uv ]; then
+  pip_install
+elif ! uv_install; then
+  echo "setup.sh: uv could not install the requirements; installing with pip" >&2
   pip_install
 fi
 .venv/bin/python -c "import torch, torchvision, lightning, mlflow, dvc, hydra, open_clip; print('party env ok: torch', torch.__version__)"
