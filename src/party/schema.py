@@ -211,6 +211,7 @@ class Text:
     batch_size: int = MISSING
     batches_per_commit: int = MISSING
     device: str = MISSING
+    precision: str = MISSING
     index_path: str = MISSING
     part_texts_path: str = MISSING
     embeddings_dir: str = MISSING
@@ -450,6 +451,8 @@ class MovementPretrain:
 class EvaluatorTrain:
     batch_size: int = MISSING
     lr: float = MISSING
+    lr_after: Optional[float] = MISSING
+    milestone: Optional[int] = MISSING
     negative_margin: float = MISSING
     grad_clip: float = MISSING
     max_steps: int = MISSING

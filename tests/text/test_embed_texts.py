@@ -9,6 +9,7 @@ import pytest
 import party.stages.embed_texts as embed_stage
 from party.stages import cache_part_texts
 from party.text.cache import load_part_texts
+from party.text.encoders import precision_suffix
 from party.text.store import EmbeddingStore, text_key
 from text_helpers import stage_cfg, write_index
 
@@ -24,7 +25,7 @@ def test_embed_texts_stores_reuses_and_reports_missing(tmp_path, monkeypatch):
     stats = embed_stage.run(cfg)
     part_texts = {p[k] for p in parts.values() for k in ("arms", "legs")}
     captions = [c for caps in CAPS for c in caps]
-    assert stats["encoder_id"] == "minilm-all-MiniLM-L6-v2" and stats["dim"] == 384
+    assert stats["encoder_id"] == "minilm-all-MiniLM-L6-v2" + precision_suffix(cfg.text) and stats["dim"] == 384
     assert stats["texts"] == len(set(captions) | part_texts) and stats["computed"] == stats["texts"]
 
     store = EmbeddingStore.open(cfg.text.embeddings_dir)          # via current.json

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from party.text.encoders import build_text_encoder, text_encoder_id
+from party.text.encoders import build_text_encoder, precision_suffix, resolve_text_precision, text_encoder_id
 from text_helpers import REPO
 
 
@@ -21,7 +21,7 @@ def minilm():
 
 def test_minilm_paraphrases_closer_than_other_actions(minilm):
     enc, cfg = minilm
-    assert enc.dim == 384 and enc.id == "minilm-all-MiniLM-L6-v2" == text_encoder_id(cfg)
+    assert enc.dim == 384 and enc.id == "minilm-all-MiniLM-L6-v2" + precision_suffix(cfg) == text_encoder_id(cfg)
     groups = [
         ["a person walks forward.", "someone strolls ahead slowly.", "the man takes steps forward."],
         ["a person waves with the right hand.", "someone raises the right hand and waves hello."],
@@ -39,6 +39,30 @@ def test_minilm_paraphrases_closer_than_other_actions(minilm):
         diff = label != label[i]
         # every paraphrase is closer than the closest description of another action
         assert sim[i, same].min() > sim[i, diff].max(), (texts[i], sim[i])
+
+
+def test_precision_bf16_matches_fp32_and_is_stored_apart():
+    """text.precision: bf16 autocast gives float32 vectors within a hair of fp32's (the default
+    `auto` picks it on a CPU with native bf16), under an id of its own; unknown values fail."""
+    cfg = OmegaConf.load(REPO / "conf/text/minilm.yaml")
+    cfg.device = "cpu"
+    texts = ["a person waves with the left hand.", "someone kicks forward using the right leg.",
+             "a man walks in a circle and then sits down."]
+    out = {}
+    for p in ("32-true", "bf16-mixed"):
+        cfg.precision = p
+        enc = build_text_encoder(cfg)
+        assert enc.id == text_encoder_id(cfg) == "minilm-all-MiniLM-L6-v2" + ("-bf16" if p == "bf16-mixed" else "")
+        out[p] = enc.encode(texts)
+        feats, lens = enc.encode_tokens(texts)
+        assert out[p].dtype == feats.dtype == torch.float32
+    assert not torch.equal(out["32-true"], out["bf16-mixed"])
+    assert F.cosine_similarity(out["32-true"], out["bf16-mixed"]).min() > 0.999
+    cfg.precision = "auto"
+    assert resolve_text_precision(cfg) in ("32-true", "bf16-mixed")
+    cfg.precision = "16-mixed"
+    with pytest.raises(ValueError, match="text.precision"):
+        text_encoder_id(cfg)
 
 
 def test_minilm_tokens_pool_to_the_sentence_embedding(minilm):
@@ -63,6 +87,7 @@ def test_minilm_tokens_pool_to_the_sentence_embedding(minilm):
 def _clip_cfg(**kw):
     cfg = OmegaConf.load(REPO / "conf/text/clip.yaml")
     cfg.device, cfg.batch_size = "cpu", 4
+    cfg.precision = "32-true"              # compared with fp32 open_clip outputs to 1e-5
     cfg.hf_cache_dir = kw.pop("hf_cache_dir", "/nonexistent-hf-cache")
     for k, v in kw.items():
         cfg[k] = v

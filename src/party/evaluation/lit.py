@@ -63,10 +63,15 @@ class MovementAELit(L.LightningModule):
 
 class MatchLit(L.LightningModule):
     def __init__(self, ev: Evaluator, lr: float, margin: float, grad_clip: float, freeze_movement: bool,
-                 val_batch_size: int = 32, seed: int = 0):
+                 val_batch_size: int = 32, seed: int = 0, lr_after: float | None = None,
+                 milestone: int | None = None):
         super().__init__()
         self.ev = ev
         self.lr, self.margin, self.grad_clip = lr, margin, grad_clip
+        # step decay: lr until `milestone` iterations, then lr_after (milestone None: constant lr)
+        if (milestone is None) != (lr_after is None):
+            raise ValueError("evaluator.train: set lr_after and milestone together (both null: constant lr)")
+        self.lr_after, self.milestone = lr_after, milestone
         self.freeze_movement, self.val_batch_size = freeze_movement, val_batch_size
         self.rng = np.random.default_rng(seed)
         self.best: dict | None = None
@@ -133,4 +138,9 @@ class MatchLit(L.LightningModule):
         motion = list(self.ev.motion_encoder.parameters())
         if not self.freeze_movement:
             motion += list(self.ev.movement_encoder.parameters())
-        return adam([{"params": text}, {"params": motion}], lr=self.lr)
+        opt = adam([{"params": text}, {"params": motion}], lr=self.lr)
+        if self.milestone is None:
+            return opt
+        ratio, milestone = float(self.lr_after) / float(self.lr), int(self.milestone)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: 1.0 if step < milestone else ratio)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

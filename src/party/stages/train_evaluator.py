@@ -137,7 +137,7 @@ def run(cfg: DictConfig, run_) -> dict:
 
     tc = ec.train
     lit = MatchLit(ev, tc.lr, tc.negative_margin, tc.grad_clip, ec.freeze_movement,
-                   tc.batch_size, seed)
+                   tc.batch_size, seed, lr_after=tc.lr_after, milestone=tc.milestone)
     trainer = _trainer(cfg, logger, tc.max_steps, tc.max_epochs, tc.val_every_n_epochs)
     val_loader = _loader(val_ds, tc.batch_size, False, collate_text_motion, cfg, False)
     trainer.fit(lit, _loader(train_ds, tc.batch_size, True, collate_text_motion, cfg, True), val_loader)

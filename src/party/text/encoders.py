@@ -23,7 +23,11 @@ Backends (``text_cfg.name``):
   ``allow_random_init: true`` (tests).
 
 All encoders run frozen (eval mode, ``requires_grad=False``, ``torch.inference_mode``), in
-batches of ``text_cfg.batch_size`` on ``text_cfg.device`` (``auto``: cuda, then mps, then cpu).
+batches of ``text_cfg.batch_size`` on ``text_cfg.device`` (``auto``: cuda, then mps, then cpu),
+under ``text_cfg.precision``: ``32-true``, or ``bf16-mixed`` (bf16 autocast; the outputs are
+returned as float32), or ``auto``: ``bf16-mixed`` where the device computes bf16 natively (a
+CPU with AVX512-BF16 / AMX, a CUDA GPU that supports it), as ``trainer.precision: auto``. A
+bf16 encoder's ``.id`` ends in ``-bf16``, so its vectors are stored and cached apart.
 """
 from __future__ import annotations
 
@@ -65,14 +69,33 @@ def _get(cfg, key, default=None):
     return default if v is None else v
 
 
+def resolve_text_precision(cfg) -> str:
+    """``text.precision`` resolved for ``text.device``: ``32-true`` or ``bf16-mixed``."""
+    from party.training import resolve_precision
+
+    p = resolve_precision(str(cfg.precision), "cpu" if str(cfg.device) == "cpu" else "auto")
+    if p not in ("32-true", "bf16-mixed"):
+        raise ValueError(f"text.precision={cfg.precision!r}: choose auto, 32-true or bf16-mixed")
+    return p
+
+
+def precision_suffix(cfg) -> str:
+    """What a text encoder's id adds for its precision: '' (fp32) or '-bf16'."""
+    return "-bf16" if resolve_text_precision(cfg) == "bf16-mixed" else ""
+
+
 class TextEncoder:
-    """Base class: subclasses set ``id``, ``dim``, ``device``, ``batch_size`` and implement
-    ``_encode_batch`` and ``_tokens_batch``."""
+    """Base class: subclasses set ``id``, ``dim``, ``device``, ``batch_size``, ``bf16`` and
+    implement ``_encode_batch`` and ``_tokens_batch``."""
 
     id: str
     dim: int
     device: torch.device
     batch_size: int
+    bf16: bool = False
+
+    def _autocast(self):
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16)
 
     def _encode_batch(self, texts: list[str]) -> torch.Tensor:
         raise NotImplementedError
@@ -104,7 +127,8 @@ class TextEncoder:
         if not texts:
             return torch.zeros(0, self.dim)
         batches, inverse = self._batches(texts)
-        out = torch.cat([self._encode_batch(b).float().cpu() for b in batches])
+        with self._autocast():
+            out = torch.cat([self._encode_batch(b).float().cpu() for b in batches])
         return out[inverse]
 
     @torch.inference_mode()
@@ -115,7 +139,8 @@ class TextEncoder:
         batches, inverse = self._batches(texts)
         feats, lens = [], []
         for b in batches:
-            f, n = self._tokens_batch(b)
+            with self._autocast():
+                f, n = self._tokens_batch(b)
             feats.append(f.float().cpu())
             lens.append(n.long().cpu())
         L = max(f.shape[1] for f in feats)
@@ -142,14 +167,15 @@ def _minilm_dir(cfg) -> Path:
 
 
 def minilm_id(cfg) -> str:
-    """'minilm-all-MiniLM-L6-v2', plus '-len<N>' when max_seq_length differs from the model's own."""
+    """'minilm-all-MiniLM-L6-v2', plus '-len<N>' when max_seq_length differs from the model's own,
+    plus '-bf16' under bf16 (``precision_suffix``)."""
     model_dir = _minilm_dir(cfg)
     default_len = None
     st_cfg = model_dir / "sentence_bert_config.json"
     if st_cfg.exists():
         default_len = json.loads(st_cfg.read_text()).get("max_seq_length")
     n = int(cfg.max_seq_length)
-    return "minilm-all-MiniLM-L6-v2" + ("" if n == default_len else f"-len{n}")
+    return "minilm-all-MiniLM-L6-v2" + ("" if n == default_len else f"-len{n}") + precision_suffix(cfg)
 
 
 class MiniLMEncoder(TextEncoder):
@@ -167,6 +193,7 @@ class MiniLMEncoder(TextEncoder):
                                     "or point text.model_dir at an all-MiniLM-L6-v2 directory")
         self.device = resolve_device(_get(cfg, "device", "auto"))
         self.batch_size = int(cfg.batch_size)
+        self.bf16 = resolve_text_precision(cfg) == "bf16-mixed"
         self.model = SentenceTransformer(str(model_dir), device=str(self.device))
         self.model.max_seq_length = int(cfg.max_seq_length)
         self.model.eval().requires_grad_(False)
@@ -237,8 +264,8 @@ def clip_id(cfg, weights: Path | None = None) -> str:
     if weights is None:
         if not bool(_get(cfg, "allow_random_init", False)):
             raise _missing_weights_error(cfg)
-        return f"clip-{cfg.arch}-random{int(cfg.random_init_seed)}{qg}{norm}"
-    return f"clip-{cfg.arch}-{sha256_file(weights)[:12]}{qg}{norm}"
+        return f"clip-{cfg.arch}-random{int(cfg.random_init_seed)}{qg}{norm}{precision_suffix(cfg)}"
+    return f"clip-{cfg.arch}-{sha256_file(weights)[:12]}{qg}{norm}{precision_suffix(cfg)}"
 
 
 def _is_torchscript(path: Path) -> bool:
@@ -269,6 +296,7 @@ class CLIPEncoder(TextEncoder):
 
         self.device = resolve_device(_get(cfg, "device", "auto"))
         self.batch_size = int(cfg.batch_size)
+        self.bf16 = resolve_text_precision(cfg) == "bf16-mixed"
         self.normalize = bool(_get(cfg, "normalize", False))
         weights = find_clip_weights(cfg)
         self.id = clip_id(cfg, weights)
