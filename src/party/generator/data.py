@@ -31,7 +31,7 @@ fraction of the *teacher-forcing inputs*; the targets must stay the clean codes.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -225,7 +225,15 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
     Under DDP (``torch.distributed`` initialised with world size W > 1) rank r takes batches
     r, r + W, ... of that order, every rank the same number (the last incomplete round is dropped),
     so each optimizer step averages W batches of one epoch's order; Lightning must not inject its
-    own sampler (``use_distributed_sampler=False``)."""
+    own sampler (``use_distributed_sampler=False``).
+
+    ``follow(step)`` ties the order to a step counter instead (``train_generator`` passes the
+    trainer's global step): every iterator starts at batch ``step()`` of the endless sequence
+    epoch 0, epoch 1, ... So a run resumed from a checkpoint, mid-epoch or not, trains on the
+    batches the uninterrupted run would have (Lightning restarts a mid-epoch loader at its
+    epoch's first batch, and calls ``set_epoch`` only on a loader's ``sampler`` and
+    ``batch_sampler.sampler``, never on a batch sampler: without ``follow`` every epoch would
+    repeat epoch 0's order)."""
 
     def __init__(self, lengths: Sequence[int], batch_size: int, pool: int, seed: int, drop_last: bool):
         if int(batch_size) < 1 or int(pool) < 1:
@@ -233,9 +241,14 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
         self.lengths = np.asarray(lengths, dtype=np.int64)
         self.batch_size, self.pool, self.seed, self.drop_last = int(batch_size), int(pool), int(seed), bool(drop_last)
         self.epoch = 0
+        self._step: Callable[[], int] | None = None
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
+
+    def follow(self, step: Callable[[], int]) -> None:
+        """Start every iterator at batch ``step()`` (per rank) of the epoch-by-epoch order."""
+        self._step = step
 
     def _batches(self) -> list[list[int]]:
         rng = np.random.default_rng([self.seed, self.epoch])
@@ -259,11 +272,14 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
         return 0, 1
 
     def __iter__(self) -> Iterator[list[int]]:
+        skip = 0
+        if self._step is not None:
+            self.epoch, skip = divmod(int(self._step()), len(self))
         batches = self._batches()
         rank, world = self._rank_world()
         if world > 1:
             batches = batches[rank:len(batches) - len(batches) % world:world]
-        return iter(batches)
+        return iter(batches[skip:])
 
     def __len__(self) -> int:
         full, rest = divmod(len(self.lengths), self.batch_size * self.pool)

@@ -53,6 +53,23 @@ class GeneratorLit(L.LightningModule):
                 vals[f"gate_{part}_{k}"] = float(v)
         return vals
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # the random streams too, so that a resumed run draws the dropout masks, null conditions
+        # and corrupted inputs the uninterrupted run would have drawn
+        rng = {"torch": torch.get_rng_state(), "corruption": self._gen.get_state()}
+        if torch.cuda.is_available():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        checkpoint["party_rng"] = rng
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        rng = checkpoint.get("party_rng")     # absent from checkpoints written before it was saved
+        if rng is None:
+            return
+        torch.set_rng_state(rng["torch"])
+        self._gen.set_state(rng["corruption"])
+        if "cuda" in rng and torch.cuda.is_available() and len(rng["cuda"]) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+
     def on_train_start(self):
         # Lightning keeps each module's mode as it finds it at fit start; training needs train mode
         # (dropout, generator.model.cond_drop), whatever evaluated the model before.

@@ -20,6 +20,7 @@ import dataclasses
 import logging
 import shutil
 import time
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -114,8 +115,11 @@ def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int, bucket_
     if shuffle and bucket_pool > 0:
         lengths = sum(ds.lengths(s) for s in ds.streams)
         sampler = LengthBucketBatchSampler(lengths, batch_size, bucket_pool, seed, drop_last=True)
+        # its own generator: creating an iterator then draws its worker seed from that, not from the
+        # global stream the dropout masks come from (a resumed run creates one where the
+        # uninterrupted run did not)
         return DataLoader(ds, batch_sampler=sampler, collate_fn=collate, num_workers=workers,
-                          persistent_workers=workers > 0)
+                          persistent_workers=workers > 0, generator=torch.Generator().manual_seed(seed))
     return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=shuffle, collate_fn=collate,
                       num_workers=workers, generator=torch.Generator().manual_seed(seed),
                       persistent_workers=workers > 0)
@@ -219,9 +223,8 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                             use_distributed_sampler=t.bucket_pool == 0)
     if resume:
         log.info("resuming generator %s from %s", method, resume)
-    trainer.fit(lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
-                val_loader, ckpt_path=str(resume) if resume else None,
-                weights_only=True)
+    fit_resumable(trainer, lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
+                  val_loader, resume)
     final = _evaluate(model, val_loader)
     metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
                "final": final, "untrained": untrained, "precision": precision,
@@ -244,6 +247,21 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
             run.log_file(out_dir / "last.ckpt", "generator")
     _report(method, metrics, t.untrained_loss_ratio)
     return metrics
+
+
+def fit_resumable(trainer, lit, train_loader: DataLoader, val_loader, resume: Path | None) -> None:
+    """``trainer.fit``, resuming from ``resume`` (a checkpoint) if given. A length-bucketing
+    sampler follows the trainer's global step (``LengthBucketBatchSampler.follow``) and
+    ``GeneratorLit`` restores the random streams, so an interrupted run, resumed, ends with the
+    weights of an uninterrupted one. Uniform batches (``bucket_pool`` 0) restart their epoch's order."""
+    with warnings.catch_warnings():
+        if isinstance(train_loader.batch_sampler, LengthBucketBatchSampler):
+            train_loader.batch_sampler.follow(lambda: trainer.global_step)
+            if resume:
+                log.info("resuming from %s: the bucketing sampler continues at the checkpoint's step", resume)
+                # Lightning cannot see that the sampler resumes mid-epoch and would warn that it does not
+                warnings.filterwarnings("ignore", message=".*dataloader is not resumable.*")
+        trainer.fit(lit, train_loader, val_loader, ckpt_path=str(resume) if resume else None, weights_only=True)
 
 
 def _figures(cfg, run, val_ds, method: str, kind: str) -> list:
