@@ -484,6 +484,7 @@ class Evaluator:
     val_split: str = MISSING
     test_split: str = MISSING
     text_input: str = MISSING
+    text_precision: str = MISSING
     glove_dir: Optional[str] = MISSING
     max_text_tokens: Optional[int] = MISSING
     max_text_len: int = MISSING
