@@ -44,6 +44,12 @@ def adam(params, *, decoupled: bool = False, **kw) -> torch.optim.Optimizer:
     return cls(params, fused=True, **kw)
 
 
+def step_lr_factor(step: int, optim: Mapping) -> float:
+    """The two-stage schedule every training stage uses, as a ``LambdaLR`` factor: 1 until
+    ``optim["milestone"]`` iterations, then ``optim["lr_after"] / optim["lr"]``."""
+    return 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
+
+
 def count_params(module: torch.nn.Module, trainable_only: bool = False) -> int:
     """Number of parameters of ``module`` (only those with ``requires_grad`` if asked)."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)

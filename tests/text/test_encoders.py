@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from party.text.encoders import build_text_encoder, precision_suffix, resolve_text_precision, text_encoder_id
+from party.text.encoders import (build_text_encoder, pinned_precision, precision_suffix, resolve_text_precision,
+                                 text_encoder_id)
 from text_helpers import REPO
 
 
@@ -60,6 +61,12 @@ def test_precision_bf16_matches_fp32_and_is_stored_apart():
     assert F.cosine_similarity(out["32-true"], out["bf16-mixed"]).min() > 0.999
     cfg.precision = "auto"
     assert resolve_text_precision(cfg) in ("32-true", "bf16-mixed")
+    # what a stored model keeps: the precision resolved here, so `auto` cannot resolve otherwise elsewhere
+    for k in ("index_path", "part_texts_path"):      # interpolations into the whole config
+        cfg[k] = "unused"
+    pinned = pinned_precision(cfg)
+    assert pinned["precision"] == resolve_text_precision(cfg) and pinned["name"] == "minilm"
+    assert pinned_precision(cfg, "32-true")["precision"] == "32-true" and cfg.precision == "auto"
     cfg.precision = "16-mixed"
     with pytest.raises(ValueError, match="text.precision"):
         text_encoder_id(cfg)

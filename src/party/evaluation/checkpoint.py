@@ -95,7 +95,8 @@ def load_trained(path: str | Path, device: str | torch.device = "cpu", text_enco
 
             from party.text.encoders import build_text_encoder
 
-            text_encoder = build_text_encoder(OmegaConf.create(meta["text_cfg"]))
+            # checkpoints written before text.precision existed encoded in fp32
+            text_encoder = build_text_encoder(OmegaConf.create({"precision": "32-true", **meta["text_cfg"]}))
         feat, text_in = ContextualTokens(text_encoder, meta.get("max_tokens")), int(meta["text_in_dim"])
     else:
         raise ValueError(f"{path}: unknown text_input '{mode}'")

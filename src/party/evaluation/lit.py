@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from party.evaluation.evaluator import Evaluator, MovementConvDecoder
 from party.evaluation.metrics import matching_score, r_precision
-from party.training import adam
+from party.training import adam, step_lr_factor
 
 
 def contrastive_loss(a: torch.Tensor, b: torch.Tensor, negative: bool, margin: float) -> torch.Tensor:
@@ -141,6 +141,6 @@ class MatchLit(L.LightningModule):
         opt = adam([{"params": text}, {"params": motion}], lr=self.lr)
         if self.milestone is None:
             return opt
-        ratio, milestone = float(self.lr_after) / float(self.lr), int(self.milestone)
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: 1.0 if step < milestone else ratio)
+        o = {"lr": self.lr, "lr_after": self.lr_after, "milestone": self.milestone}
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: step_lr_factor(step, o))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

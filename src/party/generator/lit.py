@@ -15,14 +15,9 @@ import lightning as L
 import torch
 
 from party.generator.data import corrupt_codes
-from party.training import adam
+from party.training import adam, step_lr_factor
 
 _SCALARS = ("loss", "hol", "part", "div", "aux")
-
-
-def step_lr_factor(step: int, optim) -> float:
-    """1 until ``milestone`` iterations, then ``lr_after / lr``."""
-    return 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
 
 
 class GeneratorLit(L.LightningModule):

@@ -33,9 +33,9 @@ def decoder_streams(kind: str, streams, whole: str) -> list[str]:
 
 def build_package(cfg, method: str, out: Path) -> dict:
     """Write the package of ``<generator.out_dir>/<method>`` to ``out``; returns package.json."""
-    from party.config import plain
     from party.data.context import load_context
     from party.generator.train import load_generator
+    from party.text.encoders import pinned_precision
     from party.text.store import EmbeddingStore
 
     src = Path(cfg.generator.out_dir) / method
@@ -55,7 +55,8 @@ def build_package(cfg, method: str, out: Path) -> dict:
     np.save(out / "stats" / "Std.npy", ctx.normalizer.std)
     idx = ctx.index
     info = {"format": FORMAT, "method": method, "kind": model.spec.kind, "streams": list(meta["streams"]),
-            "tokenizers": streams, "encoder_id": store.encoder_id, "text": plain(cfg.text),
+            "tokenizers": streams, "encoder_id": store.encoder_id,
+            "text": pinned_precision(cfg.text),
             "dataset": {"name": idx.dataset, "skeleton": idx.skeleton, "fps": idx.fps,
                         "feat_dim": idx.feat_dim, "n_joints": idx.n_joints},
             "parts": ctx.parts_cfg, "params": model.param_counts()["total"]}
@@ -84,4 +85,6 @@ def load_package(path: str | Path):
     index = Index(d["name"], str(path / "stats"), d["fps"], d["feat_dim"], d["n_joints"], d["skeleton"], [])
     ctx = DataContext(index, MotionStore(index.root, d["feat_dim"]), Normalizer.load(path / "stats", d["feat_dim"]),
                       PartLayout.from_config(info["parts"], d["n_joints"]), info["parts"])
-    return model, meta, ctx, path / "tokenizers", OmegaConf.create(info["text"]), info
+    # packages written before text.precision existed embedded in fp32
+    text = OmegaConf.create({"precision": "32-true", **info["text"]})
+    return model, meta, ctx, path / "tokenizers", text, info

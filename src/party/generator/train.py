@@ -112,17 +112,16 @@ def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int, bucket_
     Validation: the dataset in order."""
     collate = lambda items: collate_generator(items, ds.pad)  # noqa: E731
     batch_size = min(batch_size, len(ds))
+    # the loader's own generator: creating an iterator draws its worker seed (and uniform batches
+    # their order) from it, not from the global stream the dropout masks come from (a resumed run
+    # creates an iterator where the uninterrupted run did not)
+    common = {"collate_fn": collate, "num_workers": workers, "persistent_workers": workers > 0,
+              "generator": torch.Generator().manual_seed(seed)}
     if shuffle and bucket_pool > 0:
         lengths = sum(ds.lengths(s) for s in ds.streams)
         sampler = LengthBucketBatchSampler(lengths, batch_size, bucket_pool, seed, drop_last=True)
-        # its own generator: creating an iterator then draws its worker seed from that, not from the
-        # global stream the dropout masks come from (a resumed run creates one where the
-        # uninterrupted run did not)
-        return DataLoader(ds, batch_sampler=sampler, collate_fn=collate, num_workers=workers,
-                          persistent_workers=workers > 0, generator=torch.Generator().manual_seed(seed))
-    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=shuffle, collate_fn=collate,
-                      num_workers=workers, generator=torch.Generator().manual_seed(seed),
-                      persistent_workers=workers > 0)
+        return DataLoader(ds, batch_sampler=sampler, **common)
+    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=shuffle, **common)
 
 
 def _identity(cfg) -> dict:

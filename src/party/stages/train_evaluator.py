@@ -45,14 +45,14 @@ def build_featurizer(cfg: DictConfig, index, mode: str, max_text_len: int):
             raise ValueError("evaluator.text_input=glove needs evaluator.glove_dir (our_vab_data.npy, ...)")
         f = WordVectorizer.from_glove(glove, max_text_len=max_text_len)
         return f, f.dim, {"glove_dir": str(Path(glove).resolve())}
-    from party.text.encoders import build_text_encoder
+    from party.text.encoders import build_text_encoder, pinned_precision
 
     if cfg.get("text") is None:
         raise ValueError(f"evaluator.text_input={mode} needs the text encoder config group `text`")
     # the measuring instrument's own precision (evaluator.text_precision), not text.precision: a
     # faster generator-side encoder must not change the word table the evaluators learn from
-    text_cfg = OmegaConf.merge(cfg.text, {"precision": cfg.evaluator.text_precision})
-    enc = build_text_encoder(text_cfg)
+    text_cfg = pinned_precision(cfg.text, cfg.evaluator.text_precision)
+    enc = build_text_encoder(OmegaConf.create(text_cfg))
     if mode == "words":
         words = vocabulary(c["tokens"] or [f"{w}/OTHER" for w in c["caption"].split()]
                            for clip in index.clips() for c in clip["captions"])
@@ -63,7 +63,7 @@ def build_featurizer(cfg: DictConfig, index, mode: str, max_text_len: int):
         f = ContextualTokens(enc, max_tokens)
         dim = f(["a person walks"])[0].shape[-1]
         return f, dim, {"text_in_dim": int(dim), "max_tokens": max_tokens,
-                        "text_cfg": OmegaConf.to_container(text_cfg, resolve=True),
+                        "text_cfg": text_cfg,
                         "text_encoder_id": getattr(enc, "id", None)}
     raise ValueError(f"evaluator.text_input must be words|tokens|glove, got {mode!r}")
 

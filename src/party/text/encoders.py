@@ -70,13 +70,32 @@ def _get(cfg, key, default=None):
 
 
 def resolve_text_precision(cfg) -> str:
-    """``text.precision`` resolved for ``text.device``: ``32-true`` or ``bf16-mixed``."""
+    """``text.precision`` resolved for the device ``text.device`` resolves to: ``32-true`` or
+    ``bf16-mixed`` (``auto`` on a device other than CUDA or the CPU: ``32-true``)."""
     from party.training import resolve_precision
 
-    p = resolve_precision(str(cfg.precision), "cpu" if str(cfg.device) == "cpu" else "auto")
+    p, kind = str(cfg.precision), resolve_device(_get(cfg, "device", "auto")).type
+    if kind in ("cuda", "cpu"):
+        p = resolve_precision(p, kind)
+    elif p == "auto":
+        p = "32-true"
     if p not in ("32-true", "bf16-mixed"):
         raise ValueError(f"text.precision={cfg.precision!r}: choose auto, 32-true or bf16-mixed")
     return p
+
+
+def pinned_precision(cfg, precision: str | None = None) -> dict:
+    """``cfg`` (a text config) as a plain dict with ``precision`` (default: its own) resolved on
+    this machine: what a stored model keeps, so that its encoder is rebuilt with the same
+    precision, and so the same id, on a machine where ``auto`` would resolve otherwise."""
+    from omegaconf import DictConfig, OmegaConf
+
+    # resolved where it stands (its interpolations point into the whole config), then copied
+    out = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    if precision is not None:
+        out["precision"] = precision
+    out["precision"] = resolve_text_precision(OmegaConf.create(out))
+    return out
 
 
 def precision_suffix(cfg) -> str:

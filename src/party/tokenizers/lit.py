@@ -25,7 +25,7 @@ import lightning as L
 import torch
 
 from party.tokenizers.vqvae import Tokenizer
-from party.training import adam
+from party.training import adam, step_lr_factor
 
 
 def _penalty(kind: str):
@@ -39,7 +39,7 @@ def _penalty(kind: str):
 
 def lr_factor(step: int, optim: dict) -> float:
     """Two-stage schedule: lr until ``milestone`` iterations, lr_after from then on (+ optional warm-up)."""
-    f = 1.0 if step < int(optim["milestone"]) else float(optim["lr_after"]) / float(optim["lr"])
+    f = step_lr_factor(step, optim)
     warm = int(optim["warmup_steps"] or 0)
     return f * min(1.0, (step + 1) / warm) if warm > 0 else f
 
