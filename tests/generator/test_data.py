@@ -262,6 +262,13 @@ def test_train_loader_buckets_by_length(tmp_path):
     assert len(seen) == len(set(seen)) == 4 * (len(ds) // 4)
     b = next(iter(bucketed))
     assert b["codes"]["holistic"].shape[0] == 4
+    # uniform: a pool of one batch, i.e. each epoch's permutation cut into consecutive batches
+    s = uniform.batch_sampler
+    assert isinstance(s, LengthBucketBatchSampler) and s.pool == 1
+    perm = np.random.default_rng([s.seed, s.epoch]).permutation(len(ds))
+    runs = {tuple(sorted(perm[k:k + 4].tolist())) for k in range(0, 4 * (len(ds) // 4), 4)}
+    assert {tuple(sorted(b)) for b in s} == runs
+    assert _loader(ds, 4, False, 0, 0).batch_sampler.sampler.__class__.__name__ == "SequentialSampler"
 
 
 def test_build_generator_data_from_config(tmp_path):

@@ -1,6 +1,6 @@
 """An interrupted generator training, resumed from its rolling checkpoint, ends with the weights of
-an uninterrupted one: the length-bucketing sampler continues the epoch where the checkpoint left
-it (not from the epoch's first batch) and the dropout / null-condition / corruption random
+an uninterrupted one: the batch sampler (length-bucketed or uniform) continues the epoch where the
+checkpoint left it (not from the epoch's first batch) and the dropout / null-condition / corruption random
 streams are restored."""
 import lightning as L
 import numpy as np
@@ -46,7 +46,7 @@ class Seen(L.Callback):
         self.batches.append(tuple(batch["clip_id"]))
 
 
-def _train(ds, max_steps: int, ckpt, resume=None):
+def _train(ds, max_steps: int, ckpt, resume=None, bucket_pool: int = 2):
     torch.manual_seed(0)
     model = build("party", seed=0, model={"dropout": 0.2, "cond_drop": 0.3})
     lit = GeneratorLit(model, OPTIM, {"enabled": True, "prob": 0.5}, VOCAB, seed=0)
@@ -54,17 +54,19 @@ def _train(ds, max_steps: int, ckpt, resume=None):
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                         callbacks=[AtomicCheckpoint(ckpt, 0), seen], default_root_dir=str(ckpt.parent))
-    loader = _loader(ds, 2, True, 0, seed=5, bucket_pool=2)
+    loader = _loader(ds, 2, True, 0, seed=5, bucket_pool=bucket_pool)
     fit_resumable(trainer, lit, loader, None, resume)
     return {k: v.detach().clone() for k, v in model.state_dict().items()}, seen.batches
 
 
-@pytest.mark.parametrize("stop", [3, 5, 8])        # mid-epoch, at an epoch's end, in the second epoch
-def test_resumed_training_equals_an_uninterrupted_one(tmp_path, stop):
+# mid-epoch, at an epoch's end, in the second epoch; length-bucketed and uniform batches (pool 0)
+@pytest.mark.parametrize("stop,pool", [(3, 2), (5, 2), (8, 2), (3, 0)])
+def test_resumed_training_equals_an_uninterrupted_one(tmp_path, stop, pool):
     ds = Items(10)                                   # 5 batches of 2 per epoch
-    full, full_seen = _train(ds, 9, tmp_path / "full" / "last.ckpt")
-    _, first = _train(ds, stop, tmp_path / "cut" / "last.ckpt")
-    resumed, rest = _train(ds, 9, tmp_path / "cut2" / "last.ckpt", resume=tmp_path / "cut" / "last.ckpt")
+    full, full_seen = _train(ds, 9, tmp_path / "full" / "last.ckpt", bucket_pool=pool)
+    _, first = _train(ds, stop, tmp_path / "cut" / "last.ckpt", bucket_pool=pool)
+    resumed, rest = _train(ds, 9, tmp_path / "cut2" / "last.ckpt", resume=tmp_path / "cut" / "last.ckpt",
+                           bucket_pool=pool)
     assert first + rest == full_seen and len(full_seen) == 9
     assert all(torch.equal(full[k], resumed[k]) for k in full)
 

@@ -220,7 +220,8 @@ def corrupt_codes(codes: torch.Tensor, lengths: torch.Tensor, K: int, max_prob: 
 class LengthBucketBatchSampler(Sampler[list[int]]):
     """Batches of samples of similar length: each epoch shuffles the samples, cuts them into pools
     of ``batch_size * pool`` samples, sorts each pool by length and cuts it into batches, then
-    shuffles the batches. ``seed`` + the epoch number (``set_epoch``) fix the order.
+    shuffles the batches. ``seed`` + the epoch number (``set_epoch``) fix the order. ``pool`` 1
+    gives uniform random batches (each ``batch_size`` run of the shuffled samples is one batch).
 
     Under DDP (``torch.distributed`` initialised with world size W > 1) rank r takes batches
     r, r + W, ... of that order, every rank the same number (the last incomplete round is dropped),

@@ -107,21 +107,22 @@ def load_generator(path: str | Path, map_location="cpu") -> tuple[PartyGenerator
 
 
 def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int, bucket_pool: int = 0) -> DataLoader:
-    """Training (``shuffle``): uniform random batches, or with ``bucket_pool`` > 0 batches of
-    similar length (``LengthBucketBatchSampler`` over the summed code lengths of every stream).
-    Validation: the dataset in order."""
+    """Training (``shuffle``): a ``LengthBucketBatchSampler`` over the summed code lengths of every
+    stream: with ``bucket_pool`` > 0 batches of similar length, with 0 uniform random batches (a
+    pool of one batch); either way its order can follow the trainer's step (exact resume,
+    ``fit_resumable``) and it shards itself under DDP. Validation: the dataset in order."""
     collate = lambda items: collate_generator(items, ds.pad)  # noqa: E731
     batch_size = min(batch_size, len(ds))
-    # the loader's own generator: creating an iterator draws its worker seed (and uniform batches
-    # their order) from it, not from the global stream the dropout masks come from (a resumed run
-    # creates an iterator where the uninterrupted run did not)
+    # the loader's own generator: creating an iterator draws its worker seed from it, not from the
+    # global stream the dropout masks come from (a resumed run creates an iterator where the
+    # uninterrupted run did not)
     common = {"collate_fn": collate, "num_workers": workers, "persistent_workers": workers > 0,
               "generator": torch.Generator().manual_seed(seed)}
-    if shuffle and bucket_pool > 0:
+    if shuffle:
         lengths = sum(ds.lengths(s) for s in ds.streams)
-        sampler = LengthBucketBatchSampler(lengths, batch_size, bucket_pool, seed, drop_last=True)
+        sampler = LengthBucketBatchSampler(lengths, batch_size, max(int(bucket_pool), 1), seed, drop_last=True)
         return DataLoader(ds, batch_sampler=sampler, **common)
-    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=shuffle, **common)
+    return DataLoader(ds, batch_size=batch_size, shuffle=False, **common)
 
 
 def _identity(cfg) -> dict:
@@ -218,8 +219,9 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                             section=g.trainer,
                             val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
                             default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None,
-                            # a bucketing sampler shards itself across DDP ranks
-                            use_distributed_sampler=t.bucket_pool == 0)
+                            # the training batch sampler shards itself across DDP ranks (every rank
+                            # validates on the whole split: the same numbers on each)
+                            use_distributed_sampler=False)
     if resume:
         log.info("resuming generator %s from %s", method, resume)
     fit_resumable(trainer, lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
@@ -249,15 +251,15 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
 
 
 def fit_resumable(trainer, lit, train_loader: DataLoader, val_loader, resume: Path | None) -> None:
-    """``trainer.fit``, resuming from ``resume`` (a checkpoint) if given. A length-bucketing
-    sampler follows the trainer's global step (``LengthBucketBatchSampler.follow``) and
-    ``GeneratorLit`` restores the random streams, so an interrupted run, resumed, ends with the
-    weights of an uninterrupted one. Uniform batches (``bucket_pool`` 0) restart their epoch's order."""
+    """``trainer.fit``, resuming from ``resume`` (a checkpoint) if given. The training batch
+    sampler (bucketed or uniform) follows the trainer's global step
+    (``LengthBucketBatchSampler.follow``) and ``GeneratorLit`` restores the random streams, so an
+    interrupted run, resumed, ends with the weights of an uninterrupted one."""
     with warnings.catch_warnings():
         if isinstance(train_loader.batch_sampler, LengthBucketBatchSampler):
             train_loader.batch_sampler.follow(lambda: trainer.global_step)
             if resume:
-                log.info("resuming from %s: the bucketing sampler continues at the checkpoint's step", resume)
+                log.info("resuming from %s: the batch sampler continues at the checkpoint's step", resume)
                 # Lightning cannot see that the sampler resumes mid-epoch and would warn that it does not
                 warnings.filterwarnings("ignore", message=".*dataloader is not resumable.*")
         trainer.fit(lit, train_loader, val_loader, ckpt_path=str(resume) if resume else None, weights_only=True)
