@@ -3,6 +3,7 @@
     .venv/bin/python scripts/check_generator.py [--methods party holistic partwise] [--samples 20]
                                                 [--frames 120] [--out data/eval/side_checks.json]
                                                 [--sampling sample|greedy] [--cond-scale S]
+                                                [--part-streams]
 
 For prompts that name a side in phrasings absent from the training captions (checked),
 generate ``--samples`` motions each (sampled, seeded; ``--frames`` long) and count how often
@@ -11,6 +12,11 @@ the named limb does it, with the criteria of ``party.data.synthetic.checks`` (th
 >= 20 points more frames than the other wrist; a kicking foot's ankle is 10 cm above the other
 more often than the reverse. Both hold for 100% of the synthetic ground truth. Also reported:
 how often the *other* limb does it instead (a wrong side, as opposed to no action at all).
+
+``--part-streams`` (ParTY only) also decodes each sample's own Arms / Legs codes through the part
+tokenizers (composed as the part-wise baseline is) and reports the same check on them, and how
+often the holistic motion keeps the side when the parts do and when they do not: where the side
+is lost, in the part streams or between them and the holistic stream.
 """
 from __future__ import annotations
 
@@ -35,6 +41,10 @@ PROMPTS = [("wave", "left", "a person is waving using the left hand"),
            ("kick", "right", "a person does a kick using the right foot")]
 
 
+def _pct(x) -> str:
+    return "-" if x is None else f"{x:.0%}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
@@ -48,6 +58,8 @@ def main() -> None:
     ap.add_argument("--part-cond-scale", type=float, default=None,
                     help="the Arms / Legs streams' scale (default: generator.generate.part_cond_scale)")
     ap.add_argument("--sampling", default="sample", choices=["sample", "greedy"])
+    ap.add_argument("--part-streams", action="store_true",
+                    help="ParTY: also check the motion its part codes alone decode to")
     a = ap.parse_args()
     cfg = OmegaConf.load(a.params)
     ctx = load_context(cfg)
@@ -69,14 +81,30 @@ def main() -> None:
         model, meta = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
         lengths = {s: __import__("torch").full((len(texts),), max(1, a.frames // meta["windows"][s]))
                    for s in model.spec.streams}
-        feats = generate_batches(model, emb, lengths, gcfg, Decoder(meta["tokenizers_dir"], model.spec.kind, ctx,
-                                                                   meta["streams"]), progress=False)
+        decode = Decoder(meta["tokenizers_dir"], model.spec.kind, ctx, meta["streams"])
+        parts = Decoder(meta["tokenizers_dir"], "partwise", ctx, meta["streams"]) \
+            if a.part_streams and model.spec.kind == "party" else None
+        feats, part_feats = [], []
+
+        def both(codes):
+            feats.append(decode(codes))
+            if parts is not None:
+                part_feats.append(parts(codes))
+        generate_batches(model, emb, lengths, gcfg, both, progress=False)
         rows = {}
         for n, (kind, s, p) in enumerate(PROMPTS):
-            joints = [recover_from_ric_np(f, ctx.n_joints) for f in feats[n * a.samples:(n + 1) * a.samples]]
-            ok = [kept[kind](j, s) for j in joints]
+            sl = slice(n * a.samples, (n + 1) * a.samples)
+            joints = [recover_from_ric_np(f, ctx.n_joints) for f in feats[sl]]
+            ok = np.array([kept[kind](j, s) for j in joints])
             mirrored = [kept[kind](j, OTHER[s]) for j in joints]     # the other limb does it instead
             rows[p] = {"kind": kind, "side": s, "kept": float(np.mean(ok)), "other_side": float(np.mean(mirrored))}
+            if parts is not None:
+                pj = [recover_from_ric_np(f, ctx.n_joints) for f in part_feats[sl]]
+                pok = np.array([kept[kind](j, s) for j in pj])
+                rows[p]["parts"] = {"kept": float(pok.mean()), "other_side": float(np.mean([kept[kind](j, OTHER[s])
+                                                                                            for j in pj])),
+                                    "holistic_kept_if_parts_kept": float(ok[pok].mean()) if pok.any() else None,
+                                    "holistic_kept_if_not": float(ok[~pok].mean()) if (~pok).any() else None}
         report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()])),
                      "other_side": float(np.mean([r["other_side"] for r in rows.values()])),
                      "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale),
@@ -85,6 +113,11 @@ def main() -> None:
               f"{gcfg.get('part_cond_scale')}): "
               + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
               + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})")
+        if parts is not None:
+            print(f"{m}, its part codes alone: " + "; ".join(
+                f"{r['kind']}-{r['side']} {r['parts']['kept']:.0%} (other {r['parts']['other_side']:.0%}; holistic "
+                f"kept {_pct(r['parts']['holistic_kept_if_parts_kept'])} where they keep it, "
+                f"{_pct(r['parts']['holistic_kept_if_not'])} where not)" for r in rows.values()))
     if a.out:
         Path(a.out).write_text(json.dumps(report, indent=1))
 

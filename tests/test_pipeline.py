@@ -94,6 +94,26 @@ def test_generate_for_people_writes_motion_gif_and_bvh(pipeline):
 
 
 @pytest.mark.slow
+def test_side_check_script_on_the_pipeline_outputs(pipeline):
+    """scripts/check_generator.py: per prompt the share of samples where the named limb does it
+    (and the other instead); with --part-streams, ParTY's part codes decoded alone as well."""
+    work, env, _ = pipeline
+    out = work / "outputs" / "side.json"
+    _sh([sys.executable, "scripts/check_generator.py", "--methods", "party", "holistic", "--samples", "2",
+         "--frames", "48", "--part-streams", "--out", str(out)], work, env)
+    report = json.loads(out.read_text())
+    assert set(report) == {"party", "holistic"}
+    for m, r in report.items():
+        assert len(r["prompts"]) == 6 and 0.0 <= r["mean"] <= 1.0
+        for row in r["prompts"].values():
+            assert row["kept"] in (0.0, 0.5, 1.0) and row["side"] in ("left", "right")
+            assert ("parts" in row) == (m == "party")
+    parts = next(iter(report["party"]["prompts"].values()))["parts"]
+    assert 0.0 <= parts["kept"] <= 1.0 and set(parts) == {"kept", "other_side", "holistic_kept_if_parts_kept",
+                                                          "holistic_kept_if_not"}
+
+
+@pytest.mark.slow
 def test_rerun_is_cached_and_runs_are_tracked(pipeline):
     work, env, _ = pipeline
     again = _sh([str(BIN / "dvc"), "repro"], work, env)
