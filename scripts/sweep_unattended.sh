@@ -7,7 +7,8 @@
 # the sweep's (nonzero when a point failed, so cron mails it / systemd marks the unit failed).
 # PARTY_SWEEP_WORKERS=N (default 1) starts N workers on the grid at once, each with
 # OMP_NUM_THREADS = cores / N: they share its points (party.sweep: each claims the next one
-# under a lock on status.json), so N points train side by side.
+# under a lock on status.json), so N points train side by side. Grids queue: a second grid
+# started while one runs waits for it (logs/.sweeps.lock; PARTY_SWEEP_OVERLAP=1: no waiting).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 stage=${1:?usage: sweep_unattended.sh <gen_ablation|vq_ablation> <grid> [overrides...]}
@@ -24,6 +25,15 @@ exec 9>"logs/.${grid}.lock"
 if ! flock -n 9; then
   echo "$(date -Is) ${grid}: already running, skipped" >> "$log"
   exit 0
+fi
+# one grid at a time on this machine (two cron entries at the same minute queue instead of
+# splitting the cores 4 ways); PARTY_SWEEP_OVERLAP=1 lets grids run side by side
+if [[ "${PARTY_SWEEP_OVERLAP:-0}" != 1 ]]; then
+  exec 8>"logs/.sweeps.lock"
+  if ! flock -n 8; then
+    echo "$(date -Is) ${grid}: waiting for another grid to finish" >> "$log"
+    flock 8
+  fi
 fi
 echo "$(date -Is) ${grid}: start" >> "$log"
 workers=${PARTY_SWEEP_WORKERS:-1}

@@ -184,3 +184,41 @@ def test_sweep_unattended_starts_n_workers_and_exits_nonzero_when_one_fails(tmp_
     assert lines[2].endswith("sweep-status data/ablations/gen_tab5")
     log = (tmp_path / "logs/gen_tab5.log").read_text()
     assert "gen_tab5: start" in log and "gen_tab5: exit 3" in log
+
+
+def test_sweep_unattended_queues_a_second_grid_until_the_first_ends(tmp_path):
+    """Two grids started at once on one machine run one after the other (logs/.sweeps.lock), so
+    they do not split the cores between 2 x N workers; PARTY_SWEEP_OVERLAP=1 runs them side by side."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(repo / "scripts/sweep_unattended.sh", tmp_path / "scripts")
+    (tmp_path / "params.yaml").write_text("generator: {ablation: {out_dir: data/ablations}}\n")
+    bin_ = tmp_path / ".venv/bin"
+    bin_.mkdir(parents=True)
+    (bin_ / "python").symlink_to(sys.executable)
+    calls = tmp_path / "calls"
+    (bin_ / "party").write_text(f"#!/usr/bin/env bash\n[[ $1 == sweep-status ]] && exit 0\n"
+                                f"echo \"start $2 $(date +%s.%N)\" >> {calls}\nsleep 1.5\n"
+                                f"echo \"end $2 $(date +%s.%N)\" >> {calls}\n")
+    (bin_ / "party").chmod(0o755)
+
+    def both(extra: dict) -> dict:
+        calls.unlink(missing_ok=True)
+        env = {**os.environ, "PARTY_SWEEP_WORKERS": "1", **extra}
+        a = subprocess.Popen(["bash", "scripts/sweep_unattended.sh", "gen_ablation", "ga"], cwd=tmp_path, env=env)
+        time.sleep(0.5)
+        b = subprocess.Popen(["bash", "scripts/sweep_unattended.sh", "gen_ablation", "gb"], cwd=tmp_path, env=env)
+        assert a.wait(timeout=60) == 0 and b.wait(timeout=60) == 0
+        return {(w, g.split("=")[1]): float(t) for w, g, t in (ln.split() for ln in calls.read_text().splitlines())}
+
+    t = both({})
+    assert t["start", "gb"] >= t["end", "ga"]
+    assert "gb: waiting for another grid to finish" in (tmp_path / "logs/gb.log").read_text()
+    t = both({"PARTY_SWEEP_OVERLAP": "1"})
+    assert t["start", "gb"] < t["end", "ga"]
