@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from party.data.index import load_index
-from party.io import read_json, require
+from party.io import load_npy, read_json, require
 from party.sqlite import SQLiteCache, connect, select_in
 from party.text.cache import PartTextCache, load_part_texts
 from party.text.store import EmbeddingCache, EmbeddingStore
+from party.tokenizers.tokens import TokenStore, write_token_store
 
 
 def test_read_json_says_what_to_rerun(tmp_path):
@@ -45,6 +46,31 @@ def test_stage_outputs_name_the_stage_to_rerun(tmp_path):
     (enc / "embeddings.npy").unlink()
     (enc / "keys.json").write_text("{}")
     with pytest.raises(FileNotFoundError, match=r"embeddings\.npy: not found; run `party embed_texts`"):
+        EmbeddingStore.open(enc)
+
+
+def test_a_damaged_npy_output_names_the_file_and_the_stage(tmp_path):
+    """A truncated or foreign .npy (a disk filled mid-copy, a file from elsewhere) is a ValueError
+    naming the file and the stage to rerun, not numpy's bare "EOF: reading array header"."""
+    with pytest.raises(FileNotFoundError, match=r"x\.npy: not found; run `party make_x`"):
+        load_npy(tmp_path / "x.npy", "party make_x")
+    np.save(tmp_path / "x.npy", np.arange(6).reshape(2, 3))
+    assert load_npy(tmp_path / "x.npy", "party make_x", mmap=True).shape == (2, 3)
+    data = (tmp_path / "x.npy").read_bytes()
+    for bad in (data[:60], b"not an array", b""):
+        (tmp_path / "x.npy").write_bytes(bad)
+        with pytest.raises(ValueError, match=r"x\.npy: not a readable \.npy file .*rerun `party make_x`"):
+            load_npy(tmp_path / "x.npy", "party make_x")
+    write_token_store(tmp_path / "tok", [({"motion": "m"}, np.arange(4))], {"m": 0},
+                      {"stream": "holistic", "window": 4, "tail": "crop", "codebook_size": 16})
+    codes = tmp_path / "tok" / "codes.npy"
+    codes.write_bytes(codes.read_bytes()[:100])
+    with pytest.raises(ValueError, match=r"tok/codes\.npy: not a readable .*rerun `party extract_tokens`"):
+        TokenStore.open(tmp_path / "tok")
+    enc = tmp_path / "emb" / "enc"
+    EmbeddingStore.write(enc, ["a", "b"], np.ones((2, 3)), {"encoder_id": "enc"})
+    (enc / "embeddings.npy").write_bytes((enc / "embeddings.npy").read_bytes()[:50])
+    with pytest.raises(ValueError, match=r"embeddings\.npy: not a readable .*rerun `party embed_texts`"):
         EmbeddingStore.open(enc)
 
 

@@ -322,30 +322,33 @@ def _holder(d, stage, how):
 
 
 def test_runs_of_killed_processes_are_not_left_running(tmp_path):
-    """kill -9 leaves a run RUNNING; the next start of the same stage marks it KILLED, and
-    leaves a live process's run and another stage's run alone. SIGTERM ends the run KILLED
-    at once, with the signal as the error."""
+    """kill -9 leaves a run RUNNING; the next start of any stage marks it KILLED (whatever
+    stage or experiment it was), and leaves a live process's run alone. SIGTERM ends the run
+    KILLED at once, with the signal as the error."""
     from mlflow.tracking import MlflowClient
 
     d = tmp_path / "mlruns"
     dead, dead_id = _holder(d, "train_vqvae", "kill9")
     dead.wait(60)
-    other, other_id = _holder(d, "embed_texts", "kill9")
-    other.wait(60)
     client = MlflowClient(f"sqlite:///{d}/mlflow.db")
     assert client.get_run(dead_id).info.status == "RUNNING"            # what kill -9 leaves
-    live, live_id = _holder(d, "train_vqvae", "sleep")                 # closes dead_id itself
-    client.set_terminated(dead_id, "RUNNING")                          # so that this start does
+    other, other_id = _holder(d, "embed_texts", "kill9")               # another stage's start closes it
+    other.wait(60)
+    assert client.get_run(dead_id).info.status == "KILLED"
+    assert "when embed_texts next started" in client.get_run(dead_id).data.tags["party.error"]
+    assert client.get_run(other_id).info.status == "RUNNING"
+    live, live_id = _holder(d, "train_vqvae", "sleep")                 # closes other_id itself
+    client.set_terminated(other_id, "RUNNING")                         # so that this start does
     try:
-        cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "orphans", "dir": str(d),
+        cfg = OmegaConf.create({"tracking": {"enabled": True, "experiment": "another", "dir": str(d),
                                              "uri": None, "parent_run_id": None,
                                              "log_system_metrics": False, "log_model": False}})
-        with tracking.start_run(cfg, "train_vqvae"):
+        with tracking.start_run(cfg, "evaluate"):                       # another stage, another experiment
             pass
-        assert client.get_run(dead_id).info.status == "KILLED"
-        assert "ended without closing" in client.get_run(dead_id).data.tags["party.error"]
+        assert client.get_run(other_id).info.status == "KILLED"
+        assert "ended without closing" in client.get_run(other_id).data.tags["party.error"]
+        assert "when evaluate next started" in client.get_run(other_id).data.tags["party.error"]
         assert client.get_run(live_id).info.status == "RUNNING"        # its process is alive
-        assert client.get_run(other_id).info.status == "RUNNING"       # another stage's: its next start
         live.terminate()                                                # SIGTERM
         live.wait(60)
         assert client.get_run(live_id).info.status == "KILLED"

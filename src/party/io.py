@@ -130,6 +130,18 @@ def read_json(path, produced_by: str, what: str = "") -> Any:
         raise ValueError(f"{path}: not valid JSON ({e}); rerun `{produced_by}`") from e
 
 
+def load_npy(path, produced_by: str, what: str = "", mmap: bool = False) -> np.ndarray:
+    """The array in ``path`` (no unpickling; memory-mapped with ``mmap``), written by the command
+    ``produced_by``: a missing file is a FileNotFoundError, a truncated or foreign one a ValueError
+    naming the file, both saying to (re)run ``produced_by``."""
+    path = require(path, produced_by, what)
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:   # numpy: "EOF: reading array header", "pickled data", ...
+        raise ValueError(f"{path}: {what + ' ' if what else ''}not a readable .npy file ({e}); "
+                         f"rerun `{produced_by}`") from e
+
+
 def save_npy(path, array: np.ndarray) -> None:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)

@@ -404,18 +404,19 @@ def process_key(pid: int) -> str | None:
     return f"{pid}:{stat.rsplit(')', 1)[1].split()[19]}"     # field 22: start time in ticks
 
 
-def close_orphans(client, experiment_id: str, stage: str) -> list[str]:
-    """Mark KILLED the RUNNING runs of ``stage`` in this store whose process, on this host,
-    is gone (``kill -9``, a crash the process could not report): the next start of a stage
-    cleans up after it, so the UI and ``search_runs`` never show a dead run as running.
-    Runs of other hosts (multi-node), of live processes, or without the ``party.process``
-    tag (older versions) are left alone. Returns the run ids it closed."""
+def close_orphans(client, stage: str) -> list[str]:
+    """Mark KILLED the RUNNING runs in this store (any experiment, any stage) whose process, on
+    this host, is gone (``kill -9``, the OOM killer, a crash the process could not report): the
+    next start of any stage (``stage``, named in the note it leaves) cleans up after it, so the
+    UI and ``search_runs`` never show a dead run as running. Runs of other hosts (multi-node), of
+    live processes, or without the ``party.process`` tag (older versions) are left alone.
+    Returns the run ids it closed."""
     import socket
 
     host = socket.gethostname()
-    runs = client.search_runs([experiment_id], max_results=1000, filter_string=(
-        f"attributes.status = 'RUNNING' and tags.`party.stage` = '{stage}' "
-        f"and tags.`party.host` = '{host}'"))
+    ids = [e.experiment_id for e in client.search_experiments()]
+    runs = client.search_runs(ids, max_results=1000, filter_string=(
+        f"attributes.status = 'RUNNING' and tags.`party.host` = '{host}'")) if ids else []
     closed = []
     for r in runs:
         key = r.data.tags.get("party.process", "")
@@ -426,10 +427,10 @@ def close_orphans(client, experiment_id: str, stage: str) -> list[str]:
                        f"process {pid} on {host} ended without closing this run (killed?); "
                        f"marked KILLED when {stage} next started")
         client.set_terminated(r.info.run_id, "KILLED")
-        closed.append(r.info.run_id)
+        closed.append(f"{r.data.tags.get('party.stage', '?')} {r.info.run_id}")
     if closed:
-        log.warning("marked %d orphaned %s run(s) KILLED: %s", len(closed), stage, ", ".join(closed))
-    return closed
+        log.warning("marked %d orphaned run(s) KILLED: %s", len(closed), ", ".join(closed))
+    return [c.split()[-1] for c in closed]
 
 
 class Terminated(KeyboardInterrupt):
@@ -474,7 +475,7 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     active run with ``nested=True``, or ``parent_run_id`` / ``tracking.parent_run_id``).
     Logs the flattened resolved config as params and the full config as ``config.yaml``.
     The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM) when the body raises.
-    First marks KILLED this stage's runs left RUNNING by a dead process (``close_orphans``).
+    First marks KILLED the runs left RUNNING by a dead process of this host (``close_orphans``).
     """
     t = _tcfg(cfg)
     name = run_name or stage
@@ -491,7 +492,7 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
 
     import socket
 
-    close_orphans(mlflow.MlflowClient(uri), exp_id, stage)
+    close_orphans(mlflow.MlflowClient(uri), stage)
     all_tags = {"party.stage": stage, **_git_state(), "party.host": socket.gethostname(),
                 "party.process": process_key(os.getpid())}
     for env, tag in (("DVC_EXP_NAME", "party.dvc_exp_name"),

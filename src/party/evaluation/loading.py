@@ -18,6 +18,7 @@ from party.data.context import DataContext, load_context
 from party.evaluation.efficiency import measure_ait
 from party.evaluation.protocol import motion_joints
 from party.evaluation.sources import find_tokenizer, load_tokenizer_source
+from party.io import load_npy
 from party.training import count_params
 
 log = logging.getLogger(__name__)
@@ -32,8 +33,10 @@ def load_evaluators(cfg: DictConfig, ctx: DataContext, device: torch.device) -> 
             dims = {k: v for k, v in OmegaConf.to_container(r.model, resolve=True).items() if k != "dropout"}
             if not r.checkpoint or not r.glove_dir:
                 raise ValueError("evaluator.kind=reference needs evaluator.reference.checkpoint and .glove_dir")
-            mean = np.load(r.mean) if r.mean else ctx.normalizer.mean
-            std = np.load(r.std) if r.std else ctx.normalizer.std
+            mean = load_npy(r.mean, "the reference evaluator's release", "evaluator.reference.mean") if r.mean \
+                else ctx.normalizer.mean
+            std = load_npy(r.std, "the reference evaluator's release", "evaluator.reference.std") if r.std \
+                else ctx.normalizer.std
             if not r.mean:
                 log.warning("reference evaluator without its own mean/std: using the dataset's Mean.npy/Std.npy")
             out[s] = load_reference(r.checkpoint, r.glove_dir, mean, std, dims, evc.unit_length,

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from party.io import load_npy
+
 POS_ENUMERATOR = {
     "VERB": 0, "NOUN": 1, "DET": 2, "ADP": 3, "NUM": 4, "AUX": 5, "PRON": 6, "ADJ": 7, "ADV": 8,
     "Loc_VIP": 9, "Body_VIP": 10, "Obj_VIP": 11, "Act_VIP": 12, "Desc_VIP": 13, "OTHER": 14,
@@ -91,7 +93,7 @@ class WordVectorizer:
         for f in files:
             if not f.is_file():
                 raise FileNotFoundError(f"{f}: GloVe file of the reference evaluator not found")
-        vectors = np.load(files[0])
+        vectors = load_npy(files[0], "the reference evaluator's release", "GloVe vectors")
         with open(files[1], "rb") as fh:
             words = pickle.load(fh)
         with open(files[2], "rb") as fh:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from party.io import atomic_dir, read_json, require, write_json
+from party.io import atomic_dir, load_npy, read_json, write_json
 from party.sqlite import SQLiteCache, select_in
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ class EmbeddingStore:
             path = path / encoder_id
         meta = read_json(path / "meta.json", "party embed_texts")
         keys = read_json(path / "keys.json", "party embed_texts")
-        vectors = np.load(require(path / "embeddings.npy", "party embed_texts"), mmap_mode="r")
+        vectors = load_npy(path / "embeddings.npy", "party embed_texts", mmap=True)
         if encoder_id is not None and meta.get("encoder_id") != encoder_id:
             raise ValueError(f"{path}: holds encoder {meta.get('encoder_id')!r}, expected {encoder_id!r}")
         if vectors.ndim != 2 or len(keys["sha1"]) != vectors.shape[0] or len(keys["text"]) != vectors.shape[0]:

@@ -27,7 +27,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from party.io import atomic_dir, read_json, require, save_npy, write_json
+from party.io import atomic_dir, load_npy, read_json, save_npy, write_json
 
 
 class TokenStore:
@@ -42,8 +42,8 @@ class TokenStore:
     def open(cls, root: str | Path, mmap: bool = True) -> "TokenStore":
         root = Path(root)
         index = read_json(root / "index.json", "party extract_tokens")
-        codes_path = require(root / "codes.npy", "party extract_tokens")
-        codes = np.load(codes_path, mmap_mode="r" if mmap else None, allow_pickle=False)
+        codes_path = root / "codes.npy"
+        codes = load_npy(codes_path, "party extract_tokens", mmap=mmap)
         total = sum(e["length"] for e in index["entries"])
         want = _codes_shape(total, _levels(index["meta"]))
         if codes.shape != want:
