@@ -74,6 +74,27 @@ def test_a_damaged_npy_output_names_the_file_and_the_stage(tmp_path):
         EmbeddingStore.open(enc)
 
 
+def test_a_damaged_model_file_names_the_file_and_the_stage(tmp_path):
+    """A truncated generator, tokenizer or evaluator file is a ValueError naming the file and the
+    stage to rerun, not torch's bare "OSError: [Errno 22] Invalid argument"."""
+    import torch
+
+    from party.evaluation.checkpoint import torch_load
+    from party.generator.train import load_generator
+    from party.io import load_torch
+    from party.tokenizers import load_tokenizer
+
+    torch.save({"w": torch.ones(1000)}, tmp_path / "good.pt")
+    assert torch.equal(load_torch(tmp_path / "good.pt", "party make_x", "thing")[0]["w"], torch.ones(1000))
+    (tmp_path / "model.pt").write_bytes((tmp_path / "good.pt").read_bytes()[:300])
+    for load, stage in ((load_generator, "party train_generator"), (load_tokenizer, "party train_vqvae"),
+                        (torch_load, "party train_evaluator")):
+        with pytest.raises(ValueError, match=rf"model\.pt: cannot read .*; rerun `{stage}`"):
+            load(tmp_path / "model.pt")
+    with pytest.raises(FileNotFoundError, match=r"nothing\.pt: generator not found; run `party train_generator`"):
+        load_generator(tmp_path / "nothing.pt")
+
+
 def test_part_texts_are_checked_for_the_configured_parts(tmp_path):
     path = tmp_path / "part_texts.json"
     path.write_text(json.dumps({"c1": {"arms": "a", "legs": "b"}, "c2": {"arms": "c", "legs": "d"}}))

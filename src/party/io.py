@@ -142,6 +142,36 @@ def load_npy(path, produced_by: str, what: str = "", mmap: bool = False) -> np.n
                          f"rerun `{produced_by}`") from e
 
 
+def load_torch(path, produced_by: str, what: str, map_location="cpu", legacy_pickle: bool = False) -> tuple[Any, bool]:
+    """``torch.load(weights_only=True)`` of a file written by ``produced_by``; with
+    ``legacy_pickle``, a file that only a full unpickle reads (an older writer, a published
+    checkpoint) is loaded with ``weights_only=False`` after a warning. Returns (object, loaded
+    safely). A missing file is a FileNotFoundError, any other failure (truncated, not a torch
+    file) a ValueError naming the file, what it should hold and the command that writes it."""
+    import pickle
+
+    import torch
+
+    path = require(path, produced_by, what)
+
+    def fail(e: Exception) -> ValueError:
+        return ValueError(f"{path}: cannot read {what} ({type(e).__name__}: {e}); rerun `{produced_by}`")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True), True
+    except pickle.UnpicklingError as e:
+        if not legacy_pickle:
+            raise fail(e) from e
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        log.warning("%s: not loadable with weights_only=True (%s); loading it with weights_only=False "
+                    "as a file of an older party version or a published checkpoint", path, first)
+    except Exception as e:  # noqa: BLE001 - name the file whatever torch raised
+        raise fail(e) from e
+    try:
+        return torch.load(path, map_location=map_location, weights_only=False), False
+    except Exception as e:  # noqa: BLE001
+        raise fail(e) from e
+
+
 def save_npy(path, array: np.ndarray) -> None:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)

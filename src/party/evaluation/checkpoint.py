@@ -12,7 +12,6 @@ config (``evaluator.kind: reference``).
 from __future__ import annotations
 
 import logging
-import pickle
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import numpy as np
 import torch
 
 from party.evaluation.evaluator import Evaluator
+from party.io import load_torch
 from party.evaluation.text_input import ContextualTokens, WordVectorizer, pos_dim
 
 log = logging.getLogger(__name__)
@@ -28,14 +28,7 @@ REFERENCE_KEYS = ("text_encoder", "motion_encoder", "movement_encoder")
 
 
 def torch_load(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: evaluator checkpoint not found")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        log.warning("%s: not loadable with weights_only=True; loading it as a trusted pickle", path)
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt, _ = load_torch(path, "party train_evaluator", "evaluator checkpoint", legacy_pickle=True)
     if not isinstance(ckpt, Mapping) or any(k not in ckpt for k in REFERENCE_KEYS):
         raise ValueError(f"{path}: not an evaluator checkpoint (needs keys {list(REFERENCE_KEYS)})")
     return ckpt

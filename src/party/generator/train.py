@@ -86,15 +86,14 @@ class RandomCodes:
 def load_generator(path: str | Path, map_location="cpu") -> tuple[PartyGenerator, dict]:
     """(model in eval mode, meta) from ``model.pt`` or its folder (``RandomCodes`` for the
     trivial baseline's folder)."""
-    from party.io import read_json, require
+    from party.io import load_torch, read_json
     path = Path(path)
     if path.is_dir() and (path / "baseline.json").exists():
         meta = read_json(path / "baseline.json", "party train_generator")
         return RandomCodes(meta), meta
     if path.is_dir():
         path = path / "model.pt"
-    require(path, "party train_generator", what="generator")
-    obj = torch.load(path, map_location=map_location, weights_only=True)
+    obj, _ = load_torch(path, "party train_generator", "generator", map_location)
     if not isinstance(obj, dict) or obj.get("format") != FORMAT:
         raise ValueError(f"{path}: not a party generator (format {obj.get('format') if isinstance(obj, dict) else '?'}, "
                          f"expected {FORMAT}); rerun `party train_generator`")

@@ -24,13 +24,12 @@ path of an ``nn.Module`` class satisfying ``protocol.TokenizerModel``) and
 from __future__ import annotations
 
 import logging
-import pickle
 from typing import Any, Mapping
 
 import torch
 from torch import nn
 
-from party.io import require
+from party.io import load_torch
 from party.tokenizers.encoder import Decoder, Encoder, window_strides
 from party.tokenizers.protocol import TokenizerModel
 from party.tokenizers.quantizer import EMAQuantizer
@@ -360,23 +359,6 @@ def save_tokenizer(tok: Tokenizer, path) -> None:
     write_bytes(path, buf.getvalue())
 
 
-def _torch_load(path, map_location) -> tuple[Any, bool]:
-    """``torch.load`` with ``weights_only=True``; ``weights_only=False`` only when that refuses
-    the file (older writers could store other objects). Returns (object, loaded safely)."""
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True), True
-    except pickle.UnpicklingError as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        log.warning("%s: not loadable with weights_only=True (%s); loading it with weights_only=False "
-                    "as a file of an older party version", path, first)
-    except Exception as e:  # noqa: BLE001 - name the file whatever torch raised
-        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
-    try:
-        return torch.load(path, map_location=map_location, weights_only=False), False
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{path}: cannot read tokenizer ({type(e).__name__}: {e})") from e
-
-
 def load_tokenizer(path, map_location="cpu") -> Tokenizer:
     """Load a tokenizer from its folder (``model.pt``), a ``model.pt`` or a Lightning ``.ckpt``.
 
@@ -386,8 +368,7 @@ def load_tokenizer(path, map_location="cpu") -> Tokenizer:
     path = Path(path)
     if path.is_dir():
         path = path / "model.pt"
-    path = require(path, "party train_vqvae", what="tokenizer")
-    obj, safe = _torch_load(path, map_location)
+    obj, safe = load_torch(path, "party train_vqvae", "tokenizer", map_location, legacy_pickle=True)
     if isinstance(obj, dict) and "party_tokenizer" in obj:      # Lightning checkpoint
         exp = dict(obj["party_tokenizer"])
         exp["state_dict"] = {k[len("tok."):]: v for k, v in obj["state_dict"].items() if k.startswith("tok.")}
