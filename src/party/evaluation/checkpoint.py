@@ -27,8 +27,8 @@ FORMAT_VERSION = 1
 REFERENCE_KEYS = ("text_encoder", "motion_encoder", "movement_encoder")
 
 
-def torch_load(path: str | Path) -> dict:
-    ckpt, _ = load_torch(path, "party train_evaluator", "evaluator checkpoint", legacy_pickle=True)
+def torch_load(path: str | Path, produced_by: str = "party train_evaluator") -> dict:
+    ckpt, _ = load_torch(path, produced_by, "evaluator checkpoint", legacy_pickle=True)
     if not isinstance(ckpt, Mapping) or any(k not in ckpt for k in REFERENCE_KEYS):
         raise ValueError(f"{path}: not an evaluator checkpoint (needs keys {list(REFERENCE_KEYS)})")
     return ckpt
@@ -104,7 +104,7 @@ def load_reference(path: str | Path, glove_dir: str | Path, mean: np.ndarray, st
                    dims: Mapping, unit_length: int = 4, max_text_len: int = 20,
                    device: str | torch.device = "cpu", pad_to: int = 196) -> Evaluator:
     """Load the published T2M evaluator (GloVe + POS text input; features minus the 4 contacts)."""
-    ckpt = torch_load(path)
+    ckpt = torch_load(path, "the published evaluator's download (evaluator.reference.checkpoint)")
     mean, std = np.asarray(mean, dtype=np.float32), np.asarray(std, dtype=np.float32)
     if mean.shape != std.shape or mean.ndim != 1:
         raise ValueError(f"reference evaluator statistics: mean {mean.shape} / std {std.shape} are not 1-D and equal")
