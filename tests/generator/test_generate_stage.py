@@ -23,6 +23,9 @@ def test_bad_texts_input_names_the_problem(tmp_path):
     f.write_text("a person waves | soon\n")
     with pytest.raises(ValueError, match=r"prompts.txt:1: length 'soon'"):
         read_texts(_gc(texts_file=str(f)))
+    f.write_bytes(b"a person \xd4\xff waves\n")                 # not UTF-8 (latin-1, a binary file)
+    with pytest.raises(ValueError, match=r"prompts.txt: generator.generate.texts_file is not UTF-8"):
+        read_texts(_gc(texts_file=str(f)))
     f.write_text("\n\n")
     with pytest.raises(ValueError, match="no texts"):
         read_texts(_gc(texts_file=str(f)))

@@ -27,8 +27,12 @@ def read_texts(gc) -> tuple[list[str], list[int | None] | None]:
         p = Path(gc.texts_file)
         if not p.is_file():
             raise FileNotFoundError(f"{p}: generator.generate.texts_file not found")
+        try:
+            lines = p.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{p}: generator.generate.texts_file is not UTF-8 text ({e})") from e
         texts, frames = [], []
-        for n, line in enumerate(p.read_text().splitlines(), 1):
+        for n, line in enumerate(lines, 1):
             if not line.strip():
                 continue
             text, _, fr = line.partition("|")
