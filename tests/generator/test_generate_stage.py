@@ -40,3 +40,13 @@ def test_unknown_run_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no such folder"):
         resolve_run(None, str(tmp_path / "nope"), tmp_path)
     assert resolve_run(None, None, tmp_path) == tmp_path
+
+
+def test_unknown_method_lists_the_methods():
+    from omegaconf import OmegaConf
+
+    from party.generator.train import method_config
+    g = OmegaConf.create({"methods": {"party": {"kind": "party"}, "holistic": {"kind": "holistic"}}})
+    assert method_config(g, "party").kind == "party"
+    with pytest.raises(KeyError, match=r"generator.method='nope' is not in generator.methods \(party, holistic\)"):
+        method_config(g, "nope")

@@ -101,10 +101,11 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     """Write ``out_dir`` (index.json + one .npy per sample) for ``evaluate``; returns the summary."""
     from party.data.context import load_context
     from party.generator.data import open_token_stores
-    from party.generator.train import load_generator
+    from party.generator.train import load_generator, method_config
     from party.text.store import EmbeddingStore
 
     g, gc = cfg.generator, cfg.generator.generate
+    method_config(g, method)
     model, meta = load_generator(Path(g.out_dir) / method)
     ctx = load_context(cfg)
     clips = ctx.index.clips(gc.split)

@@ -44,10 +44,16 @@ _RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "resume", "num_worker
                    "untrained_loss_ratio"}
 
 
+def method_config(g, method: str):
+    """``generator.methods.<method>``, or a KeyError listing the methods there are."""
+    if method not in g.methods:
+        raise KeyError(f"generator.method={method!r} is not in generator.methods ({', '.join(g.methods)})")
+    return g.methods[method]
+
+
 def build_model(cfg, method: str, ds) -> PartyGenerator:
     g = cfg.generator
-    if method not in g.methods:
-        raise KeyError(f"generator.method={method!r} is not in generator.methods ({sorted(g.methods)})")
+    method_config(g, method)
     spec = GeneratorSpec.from_config(plain(g.model), plain(g.loss), plain(g.methods[method]),
                                      vocab=ds.codebook_sizes, windows=ds.windows, text_dim=ds.dim)
     return PartyGenerator(spec)
@@ -179,7 +185,7 @@ def _random_baseline(cfg, method: str, out_dir: str | Path, run) -> dict:
 
 def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list | None = None) -> dict:
     g = cfg.generator
-    if g.methods[method].kind == RANDOM:
+    if method_config(g, method).kind == RANDOM:
         return _random_baseline(cfg, method, out_dir, run)
     t = g.train
     if t.threads:
