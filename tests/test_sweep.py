@@ -155,11 +155,10 @@ def test_an_interrupted_point_is_recorded_and_retried_by_the_next_run(tmp_path):
     assert calls == ["y", "z"]
 
 
-def test_sweep_unattended_starts_n_workers_and_exits_nonzero_when_one_fails(tmp_path):
-    """scripts/sweep_unattended.sh with PARTY_SWEEP_WORKERS=2, against a stand-in ``party``."""
-    import os
+def _unattended(tmp_path, party_body: str):
+    """A folder with scripts/sweep_unattended.sh and a stand-in ``.venv/bin/party`` (bash body
+    ``party_body``, where ``{calls}`` is a file it may append to); returns that file's path."""
     import shutil
-    import subprocess
     import sys
     from pathlib import Path
     repo = Path(__file__).resolve().parents[1]
@@ -170,10 +169,17 @@ def test_sweep_unattended_starts_n_workers_and_exits_nonzero_when_one_fails(tmp_
     bin_.mkdir(parents=True)
     (bin_ / "python").symlink_to(sys.executable)
     calls = tmp_path / "calls"
-    (bin_ / "party").write_text(f"#!/usr/bin/env bash\necho \"$OMP_NUM_THREADS $*\" >> {calls}\n"
-                                f"[[ $1 == sweep-status ]] && exit 0\n"
-                                f"[[ $(grep -c gen_ablation {calls}) == 2 ]] && exit 3\nexit 0\n")
+    (bin_ / "party").write_text("#!/usr/bin/env bash\n" + party_body.replace("{calls}", str(calls)))
     (bin_ / "party").chmod(0o755)
+    return calls
+
+
+def test_sweep_unattended_starts_n_workers_and_exits_nonzero_when_one_fails(tmp_path):
+    """scripts/sweep_unattended.sh with PARTY_SWEEP_WORKERS=2, against a stand-in ``party``."""
+    import os
+    import subprocess
+    calls = _unattended(tmp_path, 'echo "$OMP_NUM_THREADS $*" >> {calls}\n[[ $1 == sweep-status ]] && exit 0\n'
+                                  '[[ $(grep -c gen_ablation {calls}) == 2 ]] && exit 3\nexit 0\n')
     env = {**os.environ, "PARTY_SWEEP_WORKERS": "2"}
     r = subprocess.run(["bash", "scripts/sweep_unattended.sh", "gen_ablation", "gen_tab5", "a=1"], cwd=tmp_path,
                        env=env, capture_output=True, text=True, timeout=60)
@@ -190,23 +196,11 @@ def test_sweep_unattended_queues_a_second_grid_until_the_first_ends(tmp_path):
     """Two grids started at once on one machine run one after the other (logs/.sweeps.lock), so
     they do not split the cores between 2 x N workers; PARTY_SWEEP_OVERLAP=1 runs them side by side."""
     import os
-    import shutil
     import subprocess
-    import sys
     import time
-    from pathlib import Path
-    repo = Path(__file__).resolve().parents[1]
-    (tmp_path / "scripts").mkdir()
-    shutil.copy(repo / "scripts/sweep_unattended.sh", tmp_path / "scripts")
-    (tmp_path / "params.yaml").write_text("generator: {ablation: {out_dir: data/ablations}}\n")
-    bin_ = tmp_path / ".venv/bin"
-    bin_.mkdir(parents=True)
-    (bin_ / "python").symlink_to(sys.executable)
-    calls = tmp_path / "calls"
-    (bin_ / "party").write_text(f"#!/usr/bin/env bash\n[[ $1 == sweep-status ]] && exit 0\n"
-                                f"echo \"start $2 $(date +%s.%N)\" >> {calls}\nsleep 1.5\n"
-                                f"echo \"end $2 $(date +%s.%N)\" >> {calls}\n")
-    (bin_ / "party").chmod(0o755)
+    calls = _unattended(tmp_path, '[[ $1 == sweep-status ]] && exit 0\n'
+                                  'echo "start $2 $(date +%s.%N)" >> {calls}\nsleep 1.5\n'
+                                  'echo "end $2 $(date +%s.%N)" >> {calls}\n')
 
     def both(extra: dict) -> dict:
         calls.unlink(missing_ok=True)
