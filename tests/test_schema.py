@@ -61,6 +61,31 @@ def test_wrong_type_in_nested_group_fails(override, key):
     _fails([override], key)
 
 
+@pytest.mark.parametrize("override,key,words", [
+    ("eval.replications=0", "eval.replications", ["0 is out of range", ">= 1"]),
+    ("vqvae.train.batch_size=0", "vqvae.train.batch_size", [">= 1"]),
+    ("generator.train.max_steps=-5", "generator.train.max_steps", ["-5", ">= 1"]),
+    ("generator.model.dropout=1.5", "generator.model.dropout", ["< 1"]),
+    ("generator.model.cond_drop=1", "generator.model.cond_drop", ["< 1"]),
+    ("generator.generate.top_p=0", "generator.generate.top_p", ["> 0"]),
+    ("generator.generate.top_p=1.5", "generator.generate.top_p", ["<= 1"]),
+    ("generator.generate.temperature=0", "generator.generate.temperature", ["> 0"]),
+    ("generator.optim.lr=-1e-4", "generator.optim.lr", ["> 0"]),
+    ("generator.corruption.prob=2", "generator.corruption.prob", ["<= 1"]),
+    ("generator.train.bucket_pool=-1", "generator.train.bucket_pool", [">= 0"]),
+    ("generator.model.max_tokens=1", "generator.model.max_tokens", [">= 2"]),
+])
+def test_out_of_range_values_fail_at_compose(override, key, words):
+    """Bounds without which a stage cannot run: a count of 0, a probability above 1, a scale of 0."""
+    _fails([override], key, *words)
+
+
+def test_range_edges_and_nullable_bounded_keys_pass():
+    compose(["generator.generate.top_p=1", "generator.generate.top_p=null", "generator.generate.top_k=null",
+             "generator.model.dropout=0", "generator.train.bucket_pool=0", "generator.generate.cond_scale=0",
+             "vqvae.train.threads=null", "generator.optim.lr_after=0", "eval.replications=1"], CONF)
+
+
 def test_missing_key_fails():
     _fails(["~vqvae.train.crop"], "vqvae.train.crop", "missing key")
 

@@ -17,8 +17,9 @@ and raises :class:`ConfigError` naming the dotted key, e.g.::
     conf: unknown key vqvae.train.bogus (not in the schema; typo?)
 
 Checks: unknown keys, missing required keys, types (strict: a quoted ``'5'`` is not
-an int, ``1`` is not a bool; an int is a float), ``null`` only where the schema says
-Optional, and the few genuine unions (``trainer.devices``: int | str | list of int;
+an int, ``1`` is not a bool; an int is a float), ranges where a stage cannot run outside
+them (``_range``: counts >= 1, probabilities, positive scales; bounds, not values),
+``null`` only where the schema says Optional, and the few genuine unions (``trainer.devices``: int | str | list of int;
 ``eval.sources.generated``: str | list of str). ``???`` (the conf's own "must be
 set" marker, e.g. ``dataset.root`` of a real dataset) is accepted: OmegaConf raises,
 naming the key, when a stage reads it. The returned config holds the values exactly
@@ -71,6 +72,20 @@ def _group(cls):
 def _union(*types):
     """A required key of one of ``types`` (OmegaConf 2.3 has no Union: typed Any, checked here)."""
     return field(default=MISSING, metadata={"union": types})
+
+
+def _range(lo: float | None = None, hi: float | None = None, *, above: bool = False, below: bool = False):
+    """A required number in [lo, hi] (``above``: > lo, ``below``: < hi; None: unbounded there).
+    Only the bounds without which a stage cannot run are stated (counts of at least one,
+    probabilities, positive scales), so a bad value fails here, naming the key, instead of deep
+    in a stage (0 replications, a batch of 0)."""
+    return field(default=MISSING, metadata={"range": (lo, hi, above, below)})
+
+
+_COUNT = functools.partial(_range, 1)           # a count of at least one (steps, batch sizes, ...)
+_SOME = functools.partial(_range, 0)            # zero or more (workers, a pool of 0 = off)
+_PROB = functools.partial(_range, 0, 1)         # a probability
+_POSITIVE = functools.partial(_range, 0, above=True)
 
 
 # --------------------------------------------------------------------------- top level
@@ -194,12 +209,12 @@ class Tracking:
 class Trainer:
     accelerator: str = MISSING
     devices: Any = _union(int, str, List[int])  # auto | N | -1 | [ids]
-    num_nodes: int = MISSING
+    num_nodes: int = _COUNT()
     strategy: str = MISSING
     precision: str = MISSING
-    num_workers: int = MISSING
+    num_workers: int = _SOME()
     pin_memory: bool = MISSING
-    log_every_n_steps: int = MISSING
+    log_every_n_steps: int = _COUNT()
     deterministic: bool = MISSING
 
 
@@ -329,25 +344,25 @@ class VQDiagnostics:
 
 @dataclass
 class VQOptim:
-    lr: float = MISSING
-    lr_after: float = MISSING
-    milestone: int = MISSING
+    lr: float = _POSITIVE()
+    lr_after: float = _SOME()
+    milestone: int = _SOME()
     betas: List[float] = MISSING
-    weight_decay: float = MISSING
-    warmup_steps: int = MISSING
-    grad_clip: float = MISSING
+    weight_decay: float = _SOME()
+    warmup_steps: int = _SOME()
+    grad_clip: float = _SOME()
 
 
 @dataclass
 class VQTrain:
-    max_steps: int = MISSING
-    batch_size: int = MISSING
-    crop: int = MISSING
-    val_every: int = MISSING
+    max_steps: int = _COUNT()
+    batch_size: int = _COUNT()
+    crop: int = _COUNT()
+    val_every: int = _COUNT()
     ckpt_every: int = MISSING
     resume: bool = MISSING
-    threads: Optional[int] = MISSING
-    render_samples: int = MISSING
+    threads: Optional[int] = _COUNT()
+    render_samples: int = _SOME()
     log_checkpoint: bool = MISSING
 
 
@@ -437,9 +452,9 @@ class EvaluatorModel(EvaluatorWidths):
 @dataclass
 class MovementPretrain:
     enabled: bool = MISSING
-    window: int = MISSING
-    batch_size: int = MISSING
-    lr: float = MISSING
+    window: int = _COUNT()
+    batch_size: int = _COUNT()
+    lr: float = _POSITIVE()
     lambda_sparsity: float = MISSING
     lambda_smooth: float = MISSING
     max_steps: int = MISSING
@@ -449,12 +464,12 @@ class MovementPretrain:
 
 @dataclass
 class EvaluatorTrain:
-    batch_size: int = MISSING
-    lr: float = MISSING
+    batch_size: int = _COUNT()
+    lr: float = _POSITIVE()
     lr_after: Optional[float] = MISSING
     milestone: Optional[int] = MISSING
     negative_margin: float = MISSING
-    grad_clip: float = MISSING
+    grad_clip: float = _SOME()
     max_steps: int = MISSING
     max_epochs: int = MISSING
     val_every_n_epochs: int = MISSING
@@ -463,7 +478,7 @@ class EvaluatorTrain:
 @dataclass
 class EvaluatorTrainer:
     precision: str = MISSING
-    num_workers: int = MISSING
+    num_workers: int = _SOME()
 
 
 @dataclass
@@ -503,9 +518,9 @@ class Evaluator:
 
 @dataclass
 class Multimodality:
-    replications: int = MISSING
-    num_texts: int = MISSING
-    times: int = MISSING
+    replications: int = _COUNT()
+    num_texts: int = _COUNT()
+    times: int = _COUNT()
 
 
 @dataclass
@@ -580,16 +595,16 @@ class Eval:
     metrics_digits: int = MISSING
     split: str = MISSING
     seed: int = MISSING
-    replications: int = MISSING
-    batch_size: int = MISSING
-    large_batch_size: int = MISSING
-    top_k: int = MISSING
-    diversity_times: int = MISSING
-    embed_batch_size: int = MISSING
+    replications: int = _COUNT()
+    batch_size: int = _COUNT()
+    large_batch_size: int = _COUNT()
+    top_k: int = _COUNT()
+    diversity_times: int = _COUNT()
+    embed_batch_size: int = _COUNT()
     max_motion_len: int = MISSING
-    unit_length: int = MISSING
+    unit_length: int = _COUNT()
     device: str = MISSING
-    ci_z: float = MISSING
+    ci_z: float = _POSITIVE()
     multimodality: Multimodality = _group(Multimodality)
     mpjpe_scale: float = MISSING
     sources: EvalSources = _group(EvalSources)
@@ -613,61 +628,61 @@ class GenMethod:                            # generator.methods.<name>
 
 @dataclass
 class GenModel:
-    dim: int = MISSING
-    part_layers: int = MISSING
-    holistic_layers: int = MISSING
-    heads: int = MISSING
-    mlp_ratio: int = MISSING
-    dropout: float = MISSING
-    max_tokens: int = MISSING
-    ptg_k: int = MISSING
-    ptg_hidden: int = MISSING
-    pg_window: int = MISSING
-    pg_hidden: int = MISSING
-    hpf_heads: int = MISSING
-    hpf_head_dim: int = MISSING
+    dim: int = _COUNT()
+    part_layers: int = _COUNT()
+    holistic_layers: int = _COUNT()
+    heads: int = _COUNT()
+    mlp_ratio: int = _COUNT()
+    dropout: float = _range(0, 1, below=True)
+    max_tokens: int = _range(2)
+    ptg_k: int = _COUNT()
+    ptg_hidden: int = _COUNT()
+    pg_window: int = _COUNT()
+    pg_hidden: int = _COUNT()
+    hpf_heads: int = _COUNT()
+    hpf_head_dim: int = _COUNT()
     text_norm: str = MISSING
-    cond_drop: float = MISSING
+    cond_drop: float = _range(0, 1, below=True)
     ptg_init: str = MISSING
 
 
 @dataclass
 class GenLoss:
-    lambda_div: float = MISSING
-    tau: float = MISSING
-    lambda_aux: float = MISSING
+    lambda_div: float = _SOME()
+    tau: float = _POSITIVE()
+    lambda_aux: float = _SOME()
     no_movement_text: str = MISSING
 
 
 @dataclass
 class GenCorruption:
     enabled: bool = MISSING
-    prob: float = MISSING
+    prob: float = _PROB()
 
 
 @dataclass
 class GenOptim:
-    lr: float = MISSING
-    lr_after: float = MISSING
-    milestone: int = MISSING
+    lr: float = _POSITIVE()
+    lr_after: float = _SOME()
+    milestone: int = _SOME()
     betas: List[float] = MISSING
-    weight_decay: float = MISSING
-    grad_clip: float = MISSING
+    weight_decay: float = _SOME()
+    grad_clip: float = _SOME()
 
 
 @dataclass
 class GenTrain:
-    batch_size: int = MISSING
-    bucket_pool: int = MISSING         # 0: uniform random batches; N: length-bucketed within pools of N batches
+    batch_size: int = _COUNT()
+    bucket_pool: int = _SOME()         # 0: uniform random batches; N: length-bucketed within pools of N batches
     val_split: str = MISSING
-    max_steps: int = MISSING
-    val_every: int = MISSING
+    max_steps: int = _COUNT()
+    val_every: int = _COUNT()
     ckpt_every: int = MISSING
     resume: bool = MISSING
-    num_workers: int = MISSING
-    threads: Optional[int] = MISSING
+    num_workers: int = _SOME()
+    threads: Optional[int] = _COUNT()
     log_checkpoint: bool = MISSING
-    render_samples: int = MISSING
+    render_samples: int = _SOME()
     render_max_frames: int = MISSING
     prompts: List[str] = MISSING
     untrained_loss_ratio: float = MISSING
@@ -677,24 +692,24 @@ class GenTrain:
 class GenAblation:
     sweep: str = MISSING
     out_dir: str = MISSING
-    replications: int = MISSING
+    replications: int = _COUNT()
 
 
 @dataclass
 class GenGenerate:
     split: str = MISSING
-    repeats: int = MISSING
-    batch_size: int = MISSING
+    repeats: int = _COUNT()
+    batch_size: int = _COUNT()
     sampling: str = MISSING                 # greedy | sample
-    temperature: float = MISSING
-    top_k: Optional[int] = MISSING
-    top_p: Optional[float] = MISSING
+    temperature: float = _POSITIVE()
+    top_k: Optional[int] = _COUNT()
+    top_p: Optional[float] = _range(0, 1, above=True)
     seed: int = MISSING
     use_cache: bool = MISSING
-    cond_scale: float = MISSING             # classifier-free guidance (1 = off)
-    part_cond_scale: Optional[float] = MISSING   # the Arms / Legs streams' scale (null: cond_scale)
+    cond_scale: float = _SOME()             # classifier-free guidance (1 = off)
+    part_cond_scale: Optional[float] = _SOME()   # the Arms / Legs streams' scale (null: cond_scale)
     lengths: str = MISSING                  # gt | free
-    min_frames: Optional[int] = MISSING     # free length: no END before this many frames
+    min_frames: Optional[int] = _COUNT()     # free length: no END before this many frames
     texts: Optional[List[str]] = MISSING
     texts_file: Optional[str] = MISSING
     frames: Optional[List[int]] = MISSING
@@ -839,7 +854,7 @@ def _hints(cls) -> dict:
     return typing.get_type_hints(cls)
 
 
-def _check(t, value, key: str, where: str, partial: bool, union: tuple = ()) -> None:
+def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bounds: tuple | None = None) -> None:
     if _is_missing(value):
         return
     t, optional = _unoptional(t)
@@ -866,7 +881,8 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = ()) -> 
         for f in dataclasses.fields(t):
             sub = _join(key, f.name)
             if f.name in value:
-                _check(hints[f.name], value[f.name], sub, where, partial, f.metadata.get("union", ()))
+                _check(hints[f.name], value[f.name], sub, where, partial, f.metadata.get("union", ()),
+                       f.metadata.get("range"))
             elif not partial and f.default is not None:         # required (MISSING or a group)
                 raise ConfigError(f"{where}: missing key {sub} (required by the schema)", sub)
     elif origin in (dict, Dict):
@@ -885,6 +901,12 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = ()) -> 
     elif not _matches(value, t):
         quoted = isinstance(value, str) and _matches(_yaml_scalar(value), t)
         _fail(where, key, f"{_short(value)} is not {_describe(t)}" + (" (a quoted string)" if quoted else ""))
+    elif bounds is not None:
+        lo, hi, above, below = bounds
+        if lo is not None and (value <= lo if above else value < lo):
+            _fail(where, key, f"{_short(value)} is out of range: must be {'>' if above else '>='} {lo}")
+        if hi is not None and (value >= hi if below else value > hi):
+            _fail(where, key, f"{_short(value)} is out of range: must be {'<' if below else '<='} {hi}")
 
 
 def _yaml_scalar(s: str):
