@@ -417,7 +417,7 @@ def close_orphans(client, stage: str) -> list[str]:
     ids = [e.experiment_id for e in client.search_experiments()]
     runs = client.search_runs(ids, max_results=1000, filter_string=(
         f"attributes.status = 'RUNNING' and tags.`party.host` = '{host}'")) if ids else []
-    closed = []
+    closed, named = [], []
     for r in runs:
         key = r.data.tags.get("party.process", "")
         pid = key.split(":", 1)[0]
@@ -427,10 +427,11 @@ def close_orphans(client, stage: str) -> list[str]:
                        f"process {pid} on {host} ended without closing this run (killed?); "
                        f"marked KILLED when {stage} next started")
         client.set_terminated(r.info.run_id, "KILLED")
-        closed.append(f"{r.data.tags.get('party.stage', '?')} {r.info.run_id}")
+        closed.append(r.info.run_id)
+        named.append(f"{r.data.tags.get('party.stage', '?')} {r.info.run_id}")
     if closed:
-        log.warning("marked %d orphaned run(s) KILLED: %s", len(closed), ", ".join(closed))
-    return [c.split()[-1] for c in closed]
+        log.warning("marked %d orphaned run(s) KILLED: %s", len(closed), ", ".join(named))
+    return closed
 
 
 class Terminated(KeyboardInterrupt):

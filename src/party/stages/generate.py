@@ -18,7 +18,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from party.generator.generate import generate_run, generate_texts
-from party.generator.train import method_config
 from party.stage import stage
 
 
@@ -76,6 +75,7 @@ def run(cfg, run_) -> dict:
     if gc.texts or gc.texts_file:
         texts, frames = read_texts(gc)
         if not gc.run:
+            from party.generator.train import method_config
             method_config(g, method)
         src = resolve_run(cfg, gc.run, Path(g.out_dir) / method)
         out = generate_texts(cfg, src, texts, frames, gc.out, list(gc.formats), cfg.progress)
