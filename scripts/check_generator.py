@@ -84,13 +84,9 @@ def main() -> None:
         decode = Decoder(meta["tokenizers_dir"], model.spec.kind, ctx, meta["streams"])
         parts = Decoder(meta["tokenizers_dir"], "partwise", ctx, meta["streams"]) \
             if a.part_streams and model.spec.kind == "party" else None
-        feats, part_feats = [], []
-
-        def both(codes):
-            feats.append(decode(codes))
-            if parts is not None:
-                part_feats.append(parts(codes))
-        generate_batches(model, emb, lengths, gcfg, both, progress=False)
+        pairs = generate_batches(model, emb, lengths, gcfg,
+                                 lambda codes: (decode(codes), None if parts is None else parts(codes)), progress=False)
+        feats, part_feats = [f for f, _ in pairs], [q for _, q in pairs]
         rows = {}
         for n, (kind, s, p) in enumerate(PROMPTS):
             sl = slice(n * a.samples, (n + 1) * a.samples)

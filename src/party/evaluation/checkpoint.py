@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from party.evaluation.evaluator import Evaluator
-from party.io import load_torch
 from party.evaluation.text_input import ContextualTokens, WordVectorizer, pos_dim
+from party.io import load_torch
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1

@@ -53,8 +53,7 @@ def method_config(g, method: str):
 
 def build_model(cfg, method: str, ds) -> PartyGenerator:
     g = cfg.generator
-    method_config(g, method)
-    spec = GeneratorSpec.from_config(plain(g.model), plain(g.loss), plain(g.methods[method]),
+    spec = GeneratorSpec.from_config(plain(g.model), plain(g.loss), plain(method_config(g, method)),
                                      vocab=ds.codebook_sizes, windows=ds.windows, text_dim=ds.dim)
     return PartyGenerator(spec)
 
