@@ -604,6 +604,7 @@ class Eval:
     max_motion_len: int = MISSING
     unit_length: int = _COUNT()
     device: str = MISSING
+    workers: Optional[int] = _COUNT()
     ci_z: float = _POSITIVE()
     multimodality: Multimodality = _group(Multimodality)
     mpjpe_scale: float = MISSING

@@ -264,3 +264,79 @@ def test_subset_metrics_score_only_the_subset_clips(trained, tmp_path):
     from party.evaluation.context import log_metrics_flat
     names = list(log_metrics_flat(res))                   # what evaluate logs to MLflow
     assert names and all(re.fullmatch(r"[\w\-. :/]+", n) for n in names), [n for n in names if "@" in n][:3]
+
+
+def _share_setup(trained, tmp_path):
+    """A generated run (ground truth on even clips, one repeated motion elsewhere, 10 repeats of a few
+    clips for MultiModality) and real arms / legs tokenizers, in folders of this test alone."""
+    tmp, _, cfg, _ = trained
+    ctx = load_context(cfg)
+    clips = ctx.index.clips("test")
+    full = lambda c: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
+    subset = {c["id"] for c in clips[::2]}
+    write_generated(tmp_path / "gen/half", clips, lambda c, r: full(c) if c["id"] in subset else full(clips[1]))
+    rng = np.random.default_rng(0)
+    write_generated(tmp_path / "gen/noisy", clips[:12], lambda c, r: full(c) + rng.normal(0, 0.05, full(c).shape),
+                    repeats=10)
+    for s in ("arms", "legs"):
+        write_real_tokenizer(tmp_path / "tok" / s, s, ctx)
+    c = cfg.copy()
+    c.eval.sources.tokenizers_dir, c.eval.sources.generated_dir = str(tmp_path / "tok"), str(tmp_path / "gen")
+    c.eval.out_dir, c.eval.metrics_dir, c.eval.replications = str(tmp_path / "eval"), str(tmp_path / "m"), 3
+    return c, subset
+
+
+def test_protocol_shares_merge_to_the_whole(trained, tmp_path):
+    """Scoring the evaluator streams in separate calls (TC/SC, MultiModality and each reconstruction
+    error in exactly one) and merging gives the one-call result exactly, subsets and order included."""
+    from party.evaluation.parallel import protocol_inputs, run_protocol_on
+    from party.evaluation.protocol import merge_results
+
+    cfg, subset = _share_setup(trained, tmp_path)
+    inp = protocol_inputs(cfg)
+    inp.subsets = {"even": (subset, "even clips")}
+    whole = run_protocol_on(cfg, inp)
+    streams = list(inp.evaluators)
+    assert streams == ["holistic", "arms"] and set(whole) == {"ground_truth", "recon_arms", "recon_legs", "half",
+                                                              "noisy"}
+    a = run_protocol_on(cfg, inp, ["holistic"], streams, extras=True, mpjpe={"legs"})
+    b = run_protocol_on(cfg, inp, ["arms"], streams, extras=False, mpjpe={"arms"}, position=1)
+    assert "coherence" not in b["half"] and "recon_legs" not in b and "recon_arms" not in a   # own evaluator only
+    merged = merge_results([b, a], inp.source_order, streams)
+    assert json.dumps(merged) == json.dumps(whole)
+    assert list(whole["half"]) == ["holistic", "arms", "coherence", "even"]
+    assert "multimodality" in whole["noisy"]["holistic"] and "reconstruction" in whole["recon_legs"]
+
+
+def test_evaluate_stage_in_worker_processes_equals_one_process(trained, tmp_path):
+    """``eval.workers`` 2 (spawned processes) writes the same metrics as 1."""
+    from party.stages import evaluate
+
+    cfg, _ = _share_setup(trained, tmp_path)
+    cfg.eval.report.clips = 0
+    out = {}
+    for w in (1, 2):
+        cfg.eval.workers = w
+        out[w] = evaluate.run(cfg)
+    assert out[1]["summary"]["workers"] == 1 and out[2]["summary"]["workers"] == 2
+    assert json.dumps(out[2]["results"]) == json.dumps(out[1]["results"])
+    assert {"tc", "sc"} <= set(out[2]["results"]["half"]["coherence"])
+    assert (tmp_path / "eval/sc_reference.json").exists()
+
+
+def test_protocol_workers_setting():
+    from party.evaluation.parallel import protocol_workers
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert protocol_workers(2, cpu, 3) == 2 and protocol_workers(5, cpu, 3) == 3 and protocol_workers(1, cpu, 3) == 1
+    assert protocol_workers(None, cuda, 3) == 1
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert protocol_workers(None, cpu, 3) == 1
+        torch.set_num_threads(2)
+        assert protocol_workers(None, cpu, 3) == 2
+        torch.set_num_threads(8)
+        assert protocol_workers(None, cpu, 3) == 3
+    finally:
+        torch.set_num_threads(threads)

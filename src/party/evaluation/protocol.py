@@ -127,34 +127,54 @@ class CoherenceScorer:
 def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizers: dict,
                  generated: list[GeneratedSource],
                  parts: Parts | None, sc_ref: SCReference | None, n_joints: int, layout=None,
-                 progress: bool = True, subsets: Mapping[str, set[str]] | None = None) -> dict[str, dict[str, dict]]:
+                 progress: bool = True, subsets: Mapping[str, set[str]] | None = None,
+                 stream_order: list[str] | None = None, extras: bool = True,
+                 mpjpe: set[str] | None = None, position: int = 0) -> dict[str, dict[str, dict]]:
     """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}, <subset>: {stream: ...}}}
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
     (the same draws and embeddings; R-Precision pools within the subset, FID against the
-    reference draw of the same clips), under ``[source][<name>][<stream>]`` of generated runs and ground truth."""
+    reference draw of the same clips), under ``[source][<name>][<stream>]`` of generated runs and ground truth.
+
+    One call may score a share of the protocol (``party.evaluation.parallel`` runs shares side by
+    side): ``embedders`` the evaluator streams scored here, ``stream_order`` every stream of the
+    whole protocol (default: ``embedders``), ``extras`` whether TC/SC and MultiModality are computed
+    here, ``mpjpe`` the tokenizers whose reconstruction error is computed here (None: every one).
+    Each replication draws the sources from its own generator and each stream's metrics from a
+    generator of its own (spawned by stream index in ``stream_order``), so the numbers do not
+    depend on how the streams are shared out."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
-    scorer = CoherenceScorer(parts, sc_ref, coh, n_joints) if coh["enabled"] and parts is not None else None
+    order_streams = list(stream_order or embedders)
+    scorer = (CoherenceScorer(parts, sc_ref, coh, n_joints)
+              if extras and coh["enabled"] and parts is not None else None)
     recon_errors: dict[str, dict[bytes, tuple[float, float, int]]] = defaultdict(dict)
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
-    for ss in tqdm(seeds, desc="replications", disable=not progress):
+    desc = "replications" + (f" ({', '.join(embedders)})" if list(embedders) != order_streams else "")
+    for ss in tqdm(seeds, desc=desc, disable=not progress, position=position):
         rng = np.random.default_rng(ss)
+        stream_seeds = ss.spawn(len(order_streams))
         gt = gt_src.draw(rng)
         gt_ref = gt_src.draw(rng)
         sets: dict[str, tuple[MotionSet, list[str], bool]] = {}
         if cfg["sources"]["ground_truth"]:
             sets["ground_truth"] = (gt, list(embedders), True)
         for stream, src in tokenizers.items():
-            rec = src.reconstruct(gt)
             streams = list(embedders) if stream == "holistic" else [s for s in embedders if s == stream]
+            own_error = mpjpe is None or stream in mpjpe
+            full_body = stream == "holistic" and scorer is not None
+            if not (streams or own_error or full_body):
+                continue
+            rec = src.reconstruct(gt)
             sets[f"recon_{stream}"] = (rec, streams, stream == "holistic")
-            rows[f"recon_{stream}"]["reconstruction"].append(reconstruction_metrics(rec, gt, layout, n_joints, cfg,
-                                                                                          recon_errors[stream]))
+            if own_error:
+                rows[f"recon_{stream}"]["reconstruction"].append(
+                    reconstruction_metrics(rec, gt, layout, n_joints, cfg, recon_errors[stream]))
         for g in generated:
             sets[g.name] = (g.draw(rng), list(embedders), True)
         for stream, emb in embedders.items():
+            srng = np.random.default_rng(stream_seeds[order_streams.index(stream)])
             m_ref = emb.motions(gt_ref)
             ref = M.FrechetReference.of(m_ref)
             sub_refs = {}
@@ -165,12 +185,12 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             for name, (ms, streams, _) in sets.items():
                 if stream in streams:
                     m, t = emb.motions(ms), emb.texts(ms)
-                    rows[name][stream].append(retrieval_metrics(t, m, ref, cfg, rng))
+                    rows[name][stream].append(retrieval_metrics(t, m, ref, cfg, srng))
                     if name.startswith("recon_"):
                         continue
                     for k, (ids, sref) in sub_refs.items():
                         r = _rows_of(ms, ids)
-                        sub_rows[name][k][stream].append(retrieval_metrics(t[r], m[r], sref, cfg, rng))
+                        sub_rows[name][k][stream].append(retrieval_metrics(t[r], m[r], sref, cfg, srng))
         if scorer is not None:
             for name, (ms, _, full_body) in sets.items():
                 if full_body:
@@ -181,12 +201,36 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     for name, subs in sub_rows.items():
         for k, by_stream in subs.items():
             out[name][k] = {s: aggregate(v, z) for s, v in by_stream.items()}
-    if "holistic" in embedders:
+    if extras and "holistic" in embedders:
         for g in generated:
             mm = multimodality(g, embedders["holistic"], cfg["multimodality"], int(cfg["seed"]))
             if mm is not None:
                 out[g.name].setdefault("holistic", {})["multimodality"] = mm
-    return out
+    return merge_results([out], order, order_streams)
+
+
+def merge_results(shares: list[dict[str, dict[str, dict]]], source_order: list[str],
+                  stream_order: list[str]) -> dict[str, dict[str, dict]]:
+    """The results of protocol shares as one ``run_protocol`` result, in one order whatever the
+    sharing: sources in ``source_order``, then per source: reconstruction, the streams in
+    ``stream_order``, coherence, subsets (each subset's streams in ``stream_order``)."""
+    def rank(key: str) -> tuple[int, int]:
+        if key in stream_order:
+            return 1, stream_order.index(key)
+        return {"reconstruction": (0, 0), "coherence": (2, 0)}.get(key, (3, 0))
+
+    merged: dict[str, dict[str, dict]] = {}
+    for name in source_order:
+        entry: dict[str, dict] = {}
+        for out in shares:
+            for key, val in out.get(name, {}).items():
+                entry.setdefault(key, {}).update(val)
+        for key, val in entry.items():
+            if rank(key)[0] == 3:                                  # a subset: {stream: metrics}
+                entry[key] = {st: val[st] for st in sorted(val, key=stream_order.index)}
+        if entry:
+            merged[name] = {k: entry[k] for k in sorted(entry, key=rank)}
+    return merged
 
 
 def _rows_of(ms: MotionSet, ids: set[str]) -> torch.Tensor:

@@ -17,16 +17,13 @@ import logging
 import time
 from pathlib import Path
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig
 
-from party.data.context import load_context
 from party.evaluation.context import log_metrics_flat
-from party.evaluation.loading import (coherence_parts, efficiency, fit_sc_reference, held_out_subsets,
-                                      load_evaluators, tokenizer_sources)
-from party.evaluation.protocol import Embedder, run_protocol
 from party.evaluation.html import write_report
+from party.evaluation.loading import efficiency
+from party.evaluation.parallel import protocol_inputs, protocol_workers, run_protocol_on, run_shared
 from party.evaluation.report import dvc_metrics, report
-from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
 from party.io import atomic_dir, write_json, write_text
 from party.stage import stage
 from party.training import resolve_device
@@ -38,36 +35,21 @@ log = logging.getLogger(__name__)
 def run(cfg: DictConfig, run_) -> dict:
     ec = cfg.eval
     t0 = time.time()
-    ctx = load_context(cfg)
-    device = resolve_device(ec.device)
-    evaluators = load_evaluators(cfg, ctx, device)
-    parts = coherence_parts(cfg, ctx) if ec.coherence.enabled else None
-    sc_ref = None
-    if parts is not None:
-        sc_ref = fit_sc_reference(ctx, parts, ec.coherence.reference_split, ec.coherence.reference_max_clips,
-                                  ec.seed)
-    gt = GroundTruthSource(ctx, ec.split, ec.max_motion_len, ec.unit_length)
-    toks = tokenizer_sources(cfg, ctx, device)
-    spec = ec.sources.generated
-    spec = list(spec) if isinstance(spec, ListConfig) else spec
-    generated = [GeneratedSource(p, ctx) for p in discover_generated(spec, ec.sources.generated_dir)]
-    names = [g.name for g in generated]
-    reserved = {"ground_truth"} | {f"recon_{s}" for s in toks}
-    clash = sorted({n for n in names if names.count(n) > 1 or n in reserved})
-    if clash:
-        raise ValueError(f"generated runs need unique names other than {sorted(reserved)}; clashing: {clash} "
-                         f"(set `name` in their index.json)")
-    protocol = OmegaConf.to_container(ec, resolve=True)
-    embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
-    subsets = held_out_subsets(cfg, ctx)
-    results = run_protocol(protocol, gt, embedders, toks, generated, parts, sc_ref, ctx.n_joints, ctx.layout,
-                           progress=cfg.progress, subsets={k: ids for k, (ids, _) in subsets.items()})
+    workers = protocol_workers(ec.workers, resolve_device(ec.device), len(cfg.evaluator.streams))
+    inp = protocol_inputs(cfg, sc_reference=workers == 1)
+    ctx, evaluators, gt, toks, generated, subsets = (inp.ctx, inp.evaluators, inp.gt, inp.tokenizers,
+                                                     inp.generated, inp.subsets)
+    workers = min(workers, len(evaluators))
+    if workers > 1:
+        results, sc_ref = run_shared(cfg, inp, workers)
+    else:
+        results, sc_ref = run_protocol_on(cfg, inp), inp.sc_ref
     eff = efficiency(cfg, evaluators, toks, generated, gt)
     switches = {g.name: g.meta["switches"] for g in generated if "switches" in g.meta}
     summary = {
         "dataset": ctx.index.dataset, "split": ec.split, "n_clips": len(gt.ds),
         "replications": ec.replications, "evaluators": {s: ev.kind for s, ev in evaluators.items()},
-        "seconds": round(time.time() - t0, 1), "device": str(device),
+        "seconds": round(time.time() - t0, 1), "device": str(inp.device), "workers": workers,
         "subsets": {k: {"clips": len(ids), "description": d} for k, (ids, d) in subsets.items()},
     }
     metrics = {"summary": summary, "results": results, "efficiency": eff}
