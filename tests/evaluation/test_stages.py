@@ -232,6 +232,16 @@ def test_ablation_table_has_reconstruction_fid(trained, tmp_path):
     assert all("recon_fid" not in r for r in vq_ablation.run(cfg))
 
 
+def _write_half(ctx, run_dir: Path) -> set[str]:
+    """A generated run: the ground truth on the even test clips, clip 1's motion on the others;
+    -> the even clips' ids."""
+    clips = ctx.index.clips("test")
+    full = lambda c: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
+    subset = {c["id"] for c in clips[::2]}
+    write_generated(run_dir, clips, lambda c, r: full(c) if c["id"] in subset else full(clips[1]))
+    return subset
+
+
 def test_subset_metrics_score_only_the_subset_clips(trained, tmp_path):
     """A run that copies the ground truth on a subset of clips and repeats one motion elsewhere:
     poor on the whole split, ground-truth-like on the subset (so the subset is really filtered)."""
@@ -243,10 +253,7 @@ def test_subset_metrics_score_only_the_subset_clips(trained, tmp_path):
 
     tmp, _, cfg, _ = trained
     ctx = load_context(cfg)
-    clips = ctx.index.clips("test")
-    full = lambda c: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
-    subset = {c["id"] for c in clips[::2]}
-    write_generated(tmp_path / "half", clips, lambda c, r: full(c) if c["id"] in subset else full(clips[1]))
+    subset = _write_half(ctx, tmp_path / "half")
     evs = load_evaluators(cfg, ctx, torch.device("cpu"))
     protocol = {**OmegaConf.to_container(cfg.eval, resolve=True), "replications": 2}
     protocol["coherence"] = {**protocol["coherence"], "enabled": False}
@@ -273,8 +280,7 @@ def _share_setup(trained, tmp_path):
     ctx = load_context(cfg)
     clips = ctx.index.clips("test")
     full = lambda c: ctx.store.clip_features(c)[: (c["end"] - c["start"]) // 4 * 4]   # noqa: E731
-    subset = {c["id"] for c in clips[::2]}
-    write_generated(tmp_path / "gen/half", clips, lambda c, r: full(c) if c["id"] in subset else full(clips[1]))
+    subset = _write_half(ctx, tmp_path / "gen/half")
     rng = np.random.default_rng(0)
     write_generated(tmp_path / "gen/noisy", clips[:12], lambda c, r: full(c) + rng.normal(0, 0.05, full(c).shape),
                     repeats=10)
