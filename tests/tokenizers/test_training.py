@@ -250,3 +250,33 @@ def test_resume_key_treats_int_and_float_alike():
     assert resume_key(base, {"seed": 0}) != resume_key({**base, "loss": {"lambda_rec": 0.5}}, {"seed": 0})
     off = {**base, "model": {"window": 8, "lte": {"enabled": False}}}
     assert resume_key(base, {"seed": 0}) != resume_key(off, {"seed": 0})
+
+
+def test_monitored_rec_loss_is_computed_on_logged_steps_alone(tiny_prepared, tmp_path, monkeypatch):
+    """lambda_rec = 0: L_rec is monitored, not trained on, so the joints are recovered only on the
+    training steps whose metrics Lightning writes (every log_every_n_steps), and the weights equal
+    those of a run that recovers them on every step."""
+    over = {"vqvae.train.max_steps": 6, "vqvae.train.val_every": 100, "trainer.log_every_n_steps": 3,
+            "vqvae.loss.lambda_rec": 0.0, "vqvae.loss.lambda_feat": 1.0}
+    calls = []
+    real = VQVAELit._joints
+
+    def counting(self, x):
+        if self.training:
+            calls.append(self.trainer.global_step)
+        return real(self, x)
+
+    monkeypatch.setattr(VQVAELit, "_joints", counting)
+    runs = {}
+    for name in ("logged", "every"):
+        if name == "every":
+            monkeypatch.setattr(VQVAELit, "_monitor_only_step", lambda self: False)
+        calls.clear()
+        out = tmp_path / name / "out"
+        runs[name] = (train_tokenizer(tiny_cfg(tmp_path / name, tiny_prepared, **over), "holistic", out),
+                      load_tokenizer(out / "model.pt").state_dict(), list(calls))
+    assert runs["logged"][2] == [2, 2, 5, 5]                     # recon + target on the two logged steps
+    assert runs["every"][2] == [k for k in range(6) for _ in (0, 1)]
+    a, b = runs["logged"][1], runs["every"][1]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert runs["logged"][0]["val/mpjpe_mm"] == runs["every"][0]["val/mpjpe_mm"]

@@ -64,24 +64,35 @@ class VQVAELit(L.LightningModule):
     def _joints(self, x: torch.Tensor) -> torch.Tensor:
         return self.tok.joints(self.tok.denormalize(x))
 
+    def _monitor_only_step(self) -> bool:
+        """A training step whose L_rec (lambda_rec = 0: monitored, not trained on) no logger
+        receives: Lightning writes step metrics every ``log_every_n_steps`` (the condition its own
+        LearningRateMonitor reads), so the joints are not recovered on the other steps (~5% of a
+        CPU step; the weights are the same either way: L_rec carries no gradient then)."""
+        if float(self.loss_cfg["lambda_rec"]) != 0 or not torch.is_grad_enabled() or self._trainer is None:
+            return False
+        return not self.trainer._logger_connector.should_update_logs
+
     def _losses(self, out: dict) -> dict:
         m = out["frame_mask"]
         denom = m.sum().clamp(min=1)
         lc = self.loss_cfg
-        # with lambda_rec = 0, L_rec is only monitored: no graph through recover_from_ric
-        with torch.set_grad_enabled(torch.is_grad_enabled() and float(lc["lambda_rec"]) != 0):
-            j_hat = self._joints(out["recon"])
-        j_gt = self._joints(out["target"])
-        if self.loss_cfg["rec_positions"] == "root_split":
-            # L1 on root-relative positions + L1 on the root position (see module docstring)
-            err = (((j_hat - j_hat[..., :1, :]) - (j_gt - j_gt[..., :1, :])).abs().mean((-1, -2))
-                   + (j_hat[..., 0, :] - j_gt[..., 0, :]).abs().mean(-1))
-        elif self.loss_cfg["rec_positions"] == "global":
-            err = (j_hat - j_gt).abs().mean((-1, -2))
-        else:
+        if self.loss_cfg["rec_positions"] not in ("global", "root_split"):
             raise ValueError(f"vqvae.loss.rec_positions must be global|root_split, "
                              f"got {self.loss_cfg.get('rec_positions')!r}")
-        l_rec = (err * m).sum() / denom
+        j_hat = j_gt = l_rec = None
+        if not self._monitor_only_step():
+            # with lambda_rec = 0, L_rec is only monitored: no graph through recover_from_ric
+            with torch.set_grad_enabled(torch.is_grad_enabled() and float(lc["lambda_rec"]) != 0):
+                j_hat = self._joints(out["recon"])
+            j_gt = self._joints(out["target"])
+            if self.loss_cfg["rec_positions"] == "root_split":
+                # L1 on root-relative positions + L1 on the root position (see module docstring)
+                err = (((j_hat - j_hat[..., :1, :]) - (j_gt - j_gt[..., :1, :])).abs().mean((-1, -2))
+                       + (j_hat[..., 0, :] - j_gt[..., 0, :]).abs().mean(-1))
+            else:
+                err = (j_hat - j_gt).abs().mean((-1, -2))
+            l_rec = (err * m).sum() / denom
         pen = self._pen
         l_feat = (pen(out["recon"], out["target"]).mean(-1) * m).sum() / denom
         # velocity of the normalised features (T2M-GPT's L_vel), on pairs of valid frames
@@ -89,7 +100,7 @@ class VQVAELit(L.LightningModule):
         l_vel = (pen(out["recon"][:, 1:] - out["recon"][:, :-1],
                      out["target"][:, 1:] - out["target"][:, :-1]).mean(-1) * mv).sum() \
             / mv.sum().clamp(min=1)
-        loss = (float(lc["lambda_rec"]) * l_rec + float(lc["lambda_app"]) * out["loss_app"]
+        loss = ((0.0 if l_rec is None else float(lc["lambda_rec"]) * l_rec) + float(lc["lambda_app"]) * out["loss_app"]
                 + float(lc["lambda_feat"]) * l_feat + float(lc["lambda_vel"]) * l_vel)
         return {"loss": loss, "l_rec": l_rec, "l_app": out["loss_app"], "l_feat": l_feat,
                 "l_vel": l_vel, "j_hat": j_hat, "j_gt": j_gt}
@@ -99,12 +110,11 @@ class VQVAELit(L.LightningModule):
         out = self.model(x)
         ls = self._losses(out)
         q = self.model.quantizer
-        self.log_dict({"train/loss": ls["loss"], "train/l_rec": ls["l_rec"], "train/l_app": ls["l_app"],
-                       "train/l_feat": ls["l_feat"], "train/l_vel": ls["l_vel"],
-                       "train/perplexity": out["perplexity"],
-                       "train/codes_used": float(out["usage"]), "train/resets": float(out["resets"]),
-                       "train/resets_total": float(q.resets_total)},
-                      prog_bar=False, batch_size=len(x))
+        logged = {"train/loss": ls["loss"], "train/l_rec": ls["l_rec"], "train/l_app": ls["l_app"],
+                  "train/l_feat": ls["l_feat"], "train/l_vel": ls["l_vel"], "train/perplexity": out["perplexity"],
+                  "train/codes_used": float(out["usage"]), "train/resets": float(out["resets"]),
+                  "train/resets_total": float(q.resets_total)}
+        self.log_dict({k: v for k, v in logged.items() if v is not None}, prog_bar=False, batch_size=len(x))
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=len(x))
         return ls["loss"]
 
