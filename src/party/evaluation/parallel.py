@@ -4,19 +4,20 @@ On the CPU the protocol (embedding crops with the evaluators, FIDs, reconstructi
 from a second thread: on the default pipeline's outputs (session 19's models, 2 cores), 153 s with
 1 thread, 166 s with 2 (LAPACK's eigvalsh alone 14 ms at 1 thread, 45 ms at 2). Processes that each
 score some evaluator streams with one thread use every core instead: 121 s with two
-(``holistic`` | ``arms, legs``), 135 s with three on the two cores. Each share draws the same sources (every replication's draws come from the replication's
-own generator) and each stream's metrics come from a generator of that stream's own
-(``run_protocol``), so the merged result equals the one-process result exactly, whatever the
-number of workers (a test checks it).
+(``holistic`` | ``arms, legs``), 135 s with three on the two cores. Each share draws the same
+sources (every replication's draws come from the replication's own generator) and each stream's
+metrics come from a generator of that stream's own (``run_protocol``), so the merged result equals
+the one-process result exactly, whatever the number of workers (a test checks it).
 
     inputs = protocol_inputs(cfg)                     # what the protocol reads, loaded from config
     results, sc_ref = run_shared(cfg, inputs, workers=3)
 
-Shares: ``holistic`` alone, with TC/SC and MultiModality (which read its evaluator), the other
-streams dealt round-robin over the other workers; a tokenizer's reconstruction error is computed in
-the share scoring its stream. What every share repeats: the draws, the holistic tokenizer's
-reconstructions (each evaluator scores them), loading. Each worker loads what it needs itself (``spawn``: nothing of the
-parent's torch state is inherited) and runs ``max(1, threads // workers)`` threads.
+Shares: ``holistic`` alone, first, with TC/SC and MultiModality (which read its evaluator), the
+other streams dealt round-robin over the other workers; a tokenizer's reconstruction error is
+computed in the share scoring its stream (else the first). What every share repeats: the draws,
+the holistic tokenizer's reconstructions (each evaluator scores them), loading. Each worker loads
+what it needs itself (``spawn``: nothing of the parent's torch state is inherited) and runs
+``max(1, threads // workers)`` threads.
 """
 from __future__ import annotations
 
@@ -127,15 +128,14 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
     rest = [s for s in streams if s not in first]
     shares = [first] + [rest[i::workers - 1] for i in range(workers - 1)] if first else \
         [streams[i::workers] for i in range(workers)]
-    extras = 0
-    owner = {t: next((i for i, sh in enumerate(shares) if t in sh), extras) for t in inp.tokenizers}
+    owner = {t: next((i for i, sh in enumerate(shares) if t in sh), 0) for t in inp.tokenizers}   # else: share 0
     threads = max(1, torch.get_num_threads() // workers)
     log.info("evaluation protocol in %d processes (%s), %d thread(s) each", workers,
              " | ".join(", ".join(sh) for sh in shares), threads)
     container = OmegaConf.to_container(cfg, resolve=True)
     ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
     try:
-        futures = [ex.submit(_share, container, sh, streams, i == extras, {t for t, o in owner.items() if o == i},
+        futures = [ex.submit(_share, container, sh, streams, i == 0, {t for t, o in owner.items() if o == i},
                              threads, i) for i, sh in enumerate(shares)]
         outs = [f.result() for f in futures]
     except BaseException:
@@ -144,4 +144,4 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
         raise
     finally:
         ex.shutdown(wait=True, cancel_futures=True)
-    return merge_results([r for r, _ in outs], inp.source_order, streams), outs[extras][1]
+    return merge_results([r for r, _ in outs], inp.source_order, streams), outs[0][1]   # share 0 has TC/SC
