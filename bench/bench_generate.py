@@ -11,6 +11,15 @@ Prints, per method: parameters per module, average inference time per sample at 
 samples/s at batch 32, with and without the cache, and the ratios (cache vs no cache at batch 1;
 batch-32 per-sample throughput vs batch 1). Nothing is asserted (speed is machine-dependent);
 cached and recomputed tokens are checked equal so the comparison is like for like.
+
+Also printed, per method: the **matmul ceiling** of the cache's batch-1 gain on this machine. A
+stream of n positions is decoded in n steps; step L recomputes L rows without the cache, 1 row
+with it. ``ceiling`` times only the transformers' ``nn.Linear`` layers (the model's own weights,
+in forward order; over 90% of a step's FLOPs at these lengths) on L rows for L = 1..n and
+returns sum_L T(L) / (n T(1)): about what the cache would gain if every other op and all per-op
+overhead cost nothing. At d = 128 and a few dozen positions one row does not cost 1/L of L rows
+(the weights are read either way), so this is near the most a cache can gain here, measured in
+the same run.
 """
 from __future__ import annotations
 
@@ -58,6 +67,38 @@ def run(model: PartyGenerator, batch: int, reps: int, use_cache: bool, frames: i
     return total, outs
 
 
+def linear_chain(model: PartyGenerator, stream: str) -> list[torch.nn.Linear]:
+    """The stream transformer's Linear layers in forward order (blocks, then the head)."""
+    g = model.gpt[stream]
+    return [m for m in g.body.modules() if isinstance(m, torch.nn.Linear)] + [g.head]
+
+
+def ceiling(model: PartyGenerator, positions: dict[str, int], device: torch.device, reps: int = 50) -> float:
+    """sum over streams and L = 1..n_s of T_s(L) / sum over streams of n_s T_s(1), T_s(L) the time of
+    the stream's Linear layers on L rows (see the module docstring)."""
+    def t(chain: list[torch.nn.Linear], rows: int) -> float:
+        xs = [torch.randn(rows, m.in_features, device=device) for m in chain]
+        for _ in range(5):
+            for m, x in zip(chain, xs):
+                torch.nn.functional.linear(x, m.weight, m.bias)
+        sync(device)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            for m, x in zip(chain, xs):
+                torch.nn.functional.linear(x, m.weight, m.bias)
+        sync(device)
+        return (time.perf_counter() - t0) / reps
+
+    recompute = cached = 0.0
+    with torch.inference_mode():
+        for s, n in positions.items():
+            chain = linear_chain(model, s)
+            one = t(chain, 1)
+            cached += n * one
+            recompute += one + sum(t(chain, L) for L in range(2, n + 1))
+    return recompute / cached
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=196)
@@ -103,6 +144,9 @@ def main() -> None:
         print(f"KV cache vs recomputation: {b1n / b1c:.1f}x at batch 1, {b32n / b32c:.1f}x at batch 32")
         print(f"batch 32 vs batch 1 per-sample throughput: {b1c / b32c:.1f}x with the cache, "
               f"{b1n / b32n:.1f}x without")
+        positions = {s: a.frames // w + 1 for s, w in spec.windows.items() if s in spec.streams}
+        print(f"matmul ceiling of the cache at batch 1 ({', '.join(f'{s} {n}' for s, n in positions.items())} "
+              f"positions): {ceiling(model, positions, device):.1f}x (measured above: {b1n / b1c:.1f}x)")
 
 
 if __name__ == "__main__":
