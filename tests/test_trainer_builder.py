@@ -1,5 +1,6 @@
 """party.training: one trainer builder for every training stage, DDP from config."""
 import os
+import re
 import sqlite3
 import subprocess
 import sys
@@ -9,7 +10,8 @@ import pytest
 import torch
 
 from party.config import compose, write_params
-from party.training import build_trainer, config_key, count_params, resume_checkpoint, trainer_kwargs
+from party.training import (build_trainer, config_key, count_params, hold_resume_dir, resume_checkpoint,
+                            trainer_kwargs)
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -52,6 +54,50 @@ def test_config_key_and_resume_checkpoint(tmp_path):
             resume_checkpoint(tmp_path, True, "vqvae.train.resume")
         assert resume_checkpoint(tmp_path, False) is None                      # resume off: not read
     assert count_params(torch.nn.Linear(3, 2)) == 8
+
+
+RANK_VARS = ("RANK", "SLURM_PROCID", "NODE_RANK", "LOCAL_RANK")
+REFUSED = "a training run with the same settings \\(the same resume key\\) is running there"
+
+
+def test_a_second_run_with_the_same_key_is_refused_while_the_first_trains(tmp_path, monkeypatch):
+    for var in RANK_VARS:
+        monkeypatch.delenv(var, raising=False)
+    folder = tmp_path / "generator" / "party" / "abc"
+    with hold_resume_dir(folder):
+        with pytest.raises(RuntimeError, match=re.escape(str(folder)) + f": {REFUSED} \\(pid {os.getpid()} on "):
+            with hold_resume_dir(folder):
+                pass
+        with hold_resume_dir(folder.parent / "other"):      # another key trains alongside
+            pass
+        monkeypatch.setenv("LOCAL_RANK", "1")              # a DDP child re-entering the stage claims nothing
+        with hold_resume_dir(folder):
+            pass
+        monkeypatch.delenv("LOCAL_RANK")
+    with pytest.raises(ZeroDivisionError):                # released after the run, and after an error
+        with hold_resume_dir(folder):
+            1 / 0
+    with hold_resume_dir(folder):
+        pass
+
+
+def test_a_killed_run_leaves_its_folder_free(tmp_path, monkeypatch):
+    for var in RANK_VARS:
+        monkeypatch.delenv(var, raising=False)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from party.training import hold_resume_dir\n"
+         f"with hold_resume_dir({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True, env={k: v for k, v in os.environ.items() if k not in RANK_VARS})
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RuntimeError, match=f"{REFUSED} \\(pid {holder.pid} on "):
+            with hold_resume_dir(tmp_path):
+                pass
+    finally:
+        holder.kill()                                      # SIGKILL: no cleanup code runs
+        holder.wait()
+    with hold_resume_dir(tmp_path):                       # the OS released the lock
+        pass
 
 
 @pytest.mark.slow

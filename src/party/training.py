@@ -15,7 +15,8 @@ outputs before it runs a stage) named by ``config_key(config, identity)``, a has
 everything that changes what a step computes plus the data's identity
 (``data_identity``: the index and normalisation files), so a killed run rerun with the
 same settings continues from ``last.ckpt`` there and a changed dataset never resumes
-an old run.
+an old run. ``hold_resume_dir(folder)`` keeps a second run with the same key (a sweep and a
+``party repro`` started side by side) out of that folder while the first trains there.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import hashlib
 import json
 import logging
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -241,6 +243,52 @@ def data_identity(index_path: str | os.PathLike, root: str | os.PathLike,
 def resume_dir(root: str | os.PathLike, name: str, key: str) -> Path:
     """``<root>/<name>/<key>``: where a run with that key checkpoints (``last.ckpt``)."""
     return Path(root) / name / key
+
+
+def _launch_rank() -> int:
+    """The process's rank as its launcher set it (torchrun, SLURM, Lightning's DDP children), 0
+    when none did: a DDP run's other ranks re-enter the stage and must not claim the folder."""
+    for var in ("RANK", "SLURM_PROCID", "NODE_RANK", "LOCAL_RANK"):
+        if os.environ.get(var, "0") != "0":
+            return int(os.environ[var])
+    return 0
+
+
+@contextmanager
+def hold_resume_dir(folder: str | os.PathLike):
+    """Hold ``folder/.lock`` while a run trains in ``folder`` (rank 0 only).
+
+    Two runs with the same resume key would write the same ``last.ckpt``: the second would resume
+    from the first's checkpoint mid-run, and each would copy whichever ``last.ckpt`` was written
+    last into its output. The lock is an advisory ``flock``: the OS releases it when the process
+    ends, killed or not, so a crashed run never leaves the folder locked. A second run raises
+    RuntimeError naming the folder and the process holding it, before it reads anything there."""
+    folder = Path(folder)
+    if _launch_rank() != 0:
+        yield folder
+        return
+    import fcntl
+
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / ".lock"
+    with open(lock, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise RuntimeError(f"{folder}: a training run with the same settings (the same resume key) is "
+                               f"running there ({holder}); both would write its last.ckpt. Wait for it to "
+                               "finish (this run then resumes or reuses its result), or change a setting "
+                               "such as the seed") from None
+        try:
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+            f.flush()
+            yield folder
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.resume") -> Path | None:

@@ -19,6 +19,7 @@ from party.tokenizers.lit import VQVAELit
 from party.tokenizers.tokens import TokenStore
 from party.tokenizers.train import train_tokenizer
 from party.tokenizers.vqvae import load_tokenizer
+from party.training import hold_resume_dir
 
 from tok_helpers import tiny_cfg, write_tiny_dataset
 
@@ -175,6 +176,10 @@ def test_resume_after_kill_continues_at_saved_step(tiny_prepared, tmp_path):
     assert first.steps == [0, 1, 2] and not out.exists()                   # nothing exported
     ckpts = list((tmp_path / "ckpt" / "holistic").glob("*/last.ckpt"))
     assert len(ckpts) == 1 and torch.load(ckpts[0], weights_only=False)["global_step"] == 2
+    with hold_resume_dir(ckpts[0].parent):     # the same run started elsewhere meanwhile: refused, untouched
+        with pytest.raises(RuntimeError, match="same resume key"):
+            train_tokenizer(cfg, "holistic", out, callbacks=[StepRecorder()])
+    assert torch.load(ckpts[0], weights_only=False)["global_step"] == 2 and not out.exists()
     second = StepRecorder()
     m = train_tokenizer(cfg, "holistic", out, callbacks=[second])
     assert second.steps == [2, 3, 4, 5] and m["step"] == 6

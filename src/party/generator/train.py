@@ -34,7 +34,7 @@ from party.generator.lit import GeneratorLit
 from party.generator.model import GeneratorSpec, PartyGenerator
 from party.io import atomic_dir, write_bytes, write_json
 from party.training import (AtomicCheckpoint, build_trainer, config_key, data_identity, file_sha, precision_identity,
-                            resume_checkpoint, resume_dir, trainer_kwargs)
+                            hold_resume_dir, resume_checkpoint, resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 FORMAT = "party.generator/1"
@@ -207,49 +207,50 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
                       "seed": seed, **precision_identity(precision)},
                      _identity(cfg))
     rdir = resume_dir(g.resume_dir, method, key)
-    ckpt = rdir / "last.ckpt"
-    resume = resume_checkpoint(rdir, t.resume, "generator.train.resume")
-    counts = model.param_counts()
-    run.set_tags({"party.method": method, "party.generator_kind": model.spec.kind, "party.resume_key": key,
-                  "party.resumed": str(resume is not None).lower()})
-    if resume is not None:
-        tracking.link_resumed(run, key)
-    run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds),
-                    "precision": precision})
-    t0 = time.time()
-    figures = _figures(cfg, run, val_ds, method, model.spec.kind)
-    trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
-                            callbacks=[AtomicCheckpoint(ckpt, t.ckpt_every), *figures, *(callbacks or [])],
-                            section=g.trainer,
-                            val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
-                            default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None,
-                            # the training batch sampler shards itself across DDP ranks (every rank
-                            # validates on the whole split: the same numbers on each)
-                            use_distributed_sampler=False)
-    if resume:
-        log.info("resuming generator %s from %s", method, resume)
-    fit_resumable(trainer, lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
-                  val_loader, resume)
-    final = _evaluate(model, val_loader)
-    metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
-               "final": final, "untrained": untrained, "precision": precision,
-               "train_seconds_this_run": round(time.time() - t0, 1)}
-    run.log_metrics({f"final/{k.split('/', 1)[1]}": v for k, v in final.items()}, step=int(trainer.global_step))
-    run.log_metrics({f"untrained/{k.split('/', 1)[1]}": v for k, v in untrained.items()})
-    if trainer.is_global_zero:
-        meta = {"method": method, "resume_key": key, "streams": list(train_ds.streams), "windows": train_ds.windows,
-                "codebook_sizes": train_ds.codebook_sizes, "text_dim": train_ds.dim,
-                "tokenizers_dir": str(g.tokenizers_dir), "encoder": str(cfg.text.embeddings_dir)}
-        with atomic_dir(out_dir) as tmp:
-            shutil.copy2(ckpt, tmp / "last.ckpt")
-            save_generator(model, tmp / "model.pt", meta)
-            write_json(tmp / "config.json", {"method": method, **plain(g), "meta": meta})
-            write_json(tmp / "metrics.json", metrics)
-        out_dir = Path(out_dir)
-        run.log_file(out_dir / "model.pt", "generator")
-        run.log_file(out_dir / "metrics.json", "generator")
-        if t.log_checkpoint:
-            run.log_file(out_dir / "last.ckpt", "generator")
+    with hold_resume_dir(rdir):     # no second run with this key in rdir until ours is copied out
+        ckpt = rdir / "last.ckpt"
+        resume = resume_checkpoint(rdir, t.resume, "generator.train.resume")
+        counts = model.param_counts()
+        run.set_tags({"party.method": method, "party.generator_kind": model.spec.kind, "party.resume_key": key,
+                      "party.resumed": str(resume is not None).lower()})
+        if resume is not None:
+            tracking.link_resumed(run, key)
+        run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds),
+                        "precision": precision})
+        t0 = time.time()
+        figures = _figures(cfg, run, val_ds, method, model.spec.kind)
+        trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
+                                callbacks=[AtomicCheckpoint(ckpt, t.ckpt_every), *figures, *(callbacks or [])],
+                                section=g.trainer,
+                                val_check_interval=min(t.val_every, t.max_steps), check_val_every_n_epoch=None,
+                                default_root_dir=str(rdir), gradient_clip_val=g.optim.grad_clip or None,
+                                # the training batch sampler shards itself across DDP ranks (every rank
+                                # validates on the whole split: the same numbers on each)
+                                use_distributed_sampler=False)
+        if resume:
+            log.info("resuming generator %s from %s", method, resume)
+        fit_resumable(trainer, lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
+                      val_loader, resume)
+        final = _evaluate(model, val_loader)
+        metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
+                   "final": final, "untrained": untrained, "precision": precision,
+                   "train_seconds_this_run": round(time.time() - t0, 1)}
+        run.log_metrics({f"final/{k.split('/', 1)[1]}": v for k, v in final.items()}, step=int(trainer.global_step))
+        run.log_metrics({f"untrained/{k.split('/', 1)[1]}": v for k, v in untrained.items()})
+        if trainer.is_global_zero:
+            meta = {"method": method, "resume_key": key, "streams": list(train_ds.streams),
+                    "windows": train_ds.windows, "codebook_sizes": train_ds.codebook_sizes, "text_dim": train_ds.dim,
+                    "tokenizers_dir": str(g.tokenizers_dir), "encoder": str(cfg.text.embeddings_dir)}
+            with atomic_dir(out_dir) as tmp:
+                shutil.copy2(ckpt, tmp / "last.ckpt")
+                save_generator(model, tmp / "model.pt", meta)
+                write_json(tmp / "config.json", {"method": method, **plain(g), "meta": meta})
+                write_json(tmp / "metrics.json", metrics)
+            out_dir = Path(out_dir)
+            run.log_file(out_dir / "model.pt", "generator")
+            run.log_file(out_dir / "metrics.json", "generator")
+            if t.log_checkpoint:
+                run.log_file(out_dir / "last.ckpt", "generator")
     _report(method, metrics, t.untrained_loss_ratio)
     return metrics
 

@@ -32,7 +32,7 @@ from party.tokenizers.data import BucketDataset, bucket_loader, eval_sequences, 
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.vqvae import Tokenizer, build_tokenizer, save_tokenizer
 from party.training import (AtomicCheckpoint, build_trainer, count_params, data_identity, precision_identity,
-                            resume_checkpoint, resume_dir, trainer_kwargs)
+                            hold_resume_dir, resume_checkpoint, resume_dir, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 
@@ -80,48 +80,49 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim, **precision_identity(precision),
                             **data_identity(data.index.path, data.index.root)})
     rdir = resume_dir(cfg.vqvae.resume_dir, stream, key)
-    ckpt = rdir / "last.ckpt"
-    resume = resume_checkpoint(rdir, t["resume"], "vqvae.train.resume")
-    n_params = count_params(model)
-    run.set_tags({"party.stream": stream, "party.resume_key": key,
-                  "party.resumed": str(resume is not None).lower()})
-    if resume is not None:
-        tracking.link_resumed(run, key)
-    t0 = time.time()
-    run.log_params({"n_params": n_params, "train_crop_frames": crop, "precision": precision,
-                    "train_clips": len(loader.dataset), "val_clips": len(val_seqs)})
-    trainer = build_trainer(cfg, max_steps=t["max_steps"], logger=tracking.lightning_logger(cfg, run),
-                            callbacks=[AtomicCheckpoint(ckpt, t["ckpt_every"]), *(callbacks or [])],
-                            section=cfg.vqvae.trainer,
-                            val_check_interval=t["val_every"], check_val_every_n_epoch=None,
-                            default_root_dir=str(rdir),
-                            gradient_clip_val=float(scfg["optim"]["grad_clip"] or 0) or None)
-    if resume:
-        log.info("resuming %s from %s", stream, resume)
-    # the resume checkpoint holds tensors and plain containers only: loaded without unpickling code
-    trainer.fit(lit, loader, val_loader, ckpt_path=str(resume) if resume else None, weights_only=True)
-    trainer.validate(lit, val_loader, verbose=False)
-    spread = diagnostics.code_spread(model, cfg.vqvae.diagnostics.code_run_length)
-    diag = diagnostics.verdict(lit.val_results, spread, diagnostics.data_spread(val_seqs),
-                               dict(cfg.vqvae.diagnostics))
-    metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
-               "window": model.window, "codebook_size": model.quantizer.n_codes,
-               "resets_total": int(model.quantizer.resets_total), "precision": precision,
-               "train_seconds_this_run": round(time.time() - t0, 1)}
-    metrics["diagnostics"] = diag
-    run.log_metrics({f"final/{k.split('/')[-1]}": v for k, v in lit.val_results.items()},
-                    step=int(trainer.global_step))
-    run.log_metrics({f"diag/{k}": float(v) for k, v in diag.items()
-                     if isinstance(v, (int, float))}, step=int(trainer.global_step))
-    run.set_tags({"party.tokenizer_status": diag["status"]})
-    if trainer.is_global_zero:
-        model.eval()
-        with atomic_dir(out_dir) as tmp:
-            shutil.copy2(ckpt, tmp / "last.ckpt")
-            save_tokenizer(tok, tmp / "model.pt")
-            write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg,
-                                             "meta": tok.meta})
-            write_json(tmp / "metrics.json", metrics)
+    with hold_resume_dir(rdir):     # no second run with this key in rdir until ours is copied out
+        ckpt = rdir / "last.ckpt"
+        resume = resume_checkpoint(rdir, t["resume"], "vqvae.train.resume")
+        n_params = count_params(model)
+        run.set_tags({"party.stream": stream, "party.resume_key": key,
+                      "party.resumed": str(resume is not None).lower()})
+        if resume is not None:
+            tracking.link_resumed(run, key)
+        t0 = time.time()
+        run.log_params({"n_params": n_params, "train_crop_frames": crop, "precision": precision,
+                        "train_clips": len(loader.dataset), "val_clips": len(val_seqs)})
+        trainer = build_trainer(cfg, max_steps=t["max_steps"], logger=tracking.lightning_logger(cfg, run),
+                                callbacks=[AtomicCheckpoint(ckpt, t["ckpt_every"]), *(callbacks or [])],
+                                section=cfg.vqvae.trainer,
+                                val_check_interval=t["val_every"], check_val_every_n_epoch=None,
+                                default_root_dir=str(rdir),
+                                gradient_clip_val=float(scfg["optim"]["grad_clip"] or 0) or None)
+        if resume:
+            log.info("resuming %s from %s", stream, resume)
+        # the resume checkpoint holds tensors and plain containers only: loaded without unpickling code
+        trainer.fit(lit, loader, val_loader, ckpt_path=str(resume) if resume else None, weights_only=True)
+        trainer.validate(lit, val_loader, verbose=False)
+        spread = diagnostics.code_spread(model, cfg.vqvae.diagnostics.code_run_length)
+        diag = diagnostics.verdict(lit.val_results, spread, diagnostics.data_spread(val_seqs),
+                                   dict(cfg.vqvae.diagnostics))
+        metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
+                   "window": model.window, "codebook_size": model.quantizer.n_codes,
+                   "resets_total": int(model.quantizer.resets_total), "precision": precision,
+                   "train_seconds_this_run": round(time.time() - t0, 1)}
+        metrics["diagnostics"] = diag
+        run.log_metrics({f"final/{k.split('/')[-1]}": v for k, v in lit.val_results.items()},
+                        step=int(trainer.global_step))
+        run.log_metrics({f"diag/{k}": float(v) for k, v in diag.items()
+                         if isinstance(v, (int, float))}, step=int(trainer.global_step))
+        run.set_tags({"party.tokenizer_status": diag["status"]})
+        if trainer.is_global_zero:
+            model.eval()
+            with atomic_dir(out_dir) as tmp:
+                shutil.copy2(ckpt, tmp / "last.ckpt")
+                save_tokenizer(tok, tmp / "model.pt")
+                write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg,
+                                                 "meta": tok.meta})
+                write_json(tmp / "metrics.json", metrics)
         out_dir = Path(out_dir)
         run.log_file(out_dir / "model.pt", "tokenizer")
         run.log_file(out_dir / "metrics.json", "tokenizer")
