@@ -431,3 +431,25 @@ def test_experiments_open_in_the_model_training_view(store):
         pass
     exp = MlflowClient(tracking.tracking_uri(cfg)).get_experiment_by_name("kind")
     assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+
+
+_FORKED = textwrap.dedent("""
+    import multiprocessing as mp, time
+    from party import tracking
+    if __name__ == "__main__":
+        with tracking.terminate_on_sigterm():
+            worker = mp.get_context("fork").Process(target=time.sleep, args=(60,))
+            worker.start()
+            time.sleep(1)
+            worker.terminate()                   # SIGTERM, as a pool's terminate() sends its workers
+            worker.join()
+            print("exit code", worker.exitcode, flush=True)
+""")
+
+
+def test_sigterm_in_a_forked_worker_ends_it_quietly():
+    """A worker forked during a stage inherits the SIGTERM handler; terminating it must not raise
+    ``Terminated`` in it (a traceback per worker, exit code 1): it ends as it would without it."""
+    res = subprocess.run([sys.executable, "-c", _FORKED], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "exit code -15" in res.stdout, res.stdout + res.stderr
+    assert "Traceback" not in res.stderr, res.stderr

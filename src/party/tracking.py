@@ -454,7 +454,13 @@ def terminate_on_sigterm() -> Iterator[None]:
         yield
         return
 
+    owner = os.getpid()
+
     def handler(signum, frame):
+        if os.getpid() != owner:    # a forked worker (a multiprocessing pool's, when it is
+            signal.signal(signum, signal.SIG_DFL)   # terminated): end quietly, as without us
+            os.kill(os.getpid(), signum)
+            return
         _SIGNALLED.append(signum)
         raise Terminated(f"received signal {signum} (SIGTERM)")
 
