@@ -81,6 +81,19 @@ def test_a_second_run_with_the_same_key_is_refused_while_the_first_trains(tmp_pa
         pass
 
 
+def test_a_filesystem_without_locks_trains_unguarded(tmp_path, monkeypatch, caplog):
+    import fcntl
+
+    def no_locks(*a):
+        raise OSError(37, "No locks available")
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    for var in RANK_VARS:
+        monkeypatch.delenv(var, raising=False)
+    with hold_resume_dir(tmp_path) as folder:
+        assert folder == tmp_path
+    assert "cannot lock the resume folder" in caplog.text and "No locks available" in caplog.text
+
+
 def test_a_killed_run_leaves_its_folder_free(tmp_path, monkeypatch):
     for var in RANK_VARS:
         monkeypatch.delenv(var, raising=False)

@@ -274,6 +274,7 @@ def hold_resume_dir(folder: str | os.PathLike):
     with open(lock, "a+") as f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            locked = True
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
@@ -281,6 +282,13 @@ def hold_resume_dir(folder: str | os.PathLike):
                                f"running there ({holder}); both would write its last.ckpt. Wait for it to "
                                "finish (this run then resumes or reuses its result), or change a setting "
                                "such as the seed") from None
+        except OSError as e:        # a filesystem without locks (some NFS mounts): train unguarded
+            log.warning("%s: cannot lock the resume folder (%s); not guarding against a second run "
+                        "with the same settings", folder, e)
+            locked = False
+        if not locked:
+            yield folder
+            return
         try:
             f.seek(0)
             f.truncate()
