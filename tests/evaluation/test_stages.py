@@ -123,6 +123,9 @@ def test_evaluate_stage_all_sources(trained, monkeypatch):
         assert title in tables, title
     assert out["summary"]["n_clips"] < 256 and "B = 256" not in tables      # B = 256 needs >= 256 clips
     assert "| copy | ✓ | ✓ | ✓ |" in tables and "| Real motion | Arms |" in tables
+    n_test = len(clips)                                  # a run covering part of the split says so
+    assert f"covering part of the split, scored on their clips only: noisy 12 of {n_test} clips" in tables
+    assert written["summary"]["generated_clips"] == {"copy": n_test, "noisy": 12, "same": n_test}
     assert json.loads((tmp / "eval/sc_reference.json").read_text())["part_names"][0] == "left_arm"
     page = (tmp / "eval/report.html").read_text()
     assert page.count("data:image/gif;base64,") == cfg.eval.report.clips      # real + copy + noisy + same each
@@ -179,6 +182,21 @@ def test_generated_run_errors_name_the_file(trained):
     g = GeneratedSource(run, ctx)
     ms = g.draw(np.random.default_rng(0))
     assert ms.feats[0].shape == (40, 263) and ms.tokens[0] == clip["captions"][0]["tokens"]
+    assert GeneratedSource(run, ctx, "test", 4).coverage == (1, len(ctx.index.clips("test")))
+    # a clip of another split (a run generated from the wrong captions, or an edited index)
+    train_clip = ctx.index.clips("train")[0]
+    (run / "index.json").write_text(json.dumps({"format": "joints", "samples": [
+        {"clip_id": clip["id"], "caption": "x", "file": "a.npy"}, {"clip_id": train_clip["id"], "caption": "y",
+                                                                   "file": "a.npy"}]}))
+    with pytest.raises(ValueError, match=rf"r1/index.json: 1 clip\(s\) of its samples are not in the 'test' split "
+                                         rf"\(e.g. \['{train_clip['id']}'\]\)"):
+        GeneratedSource(run, ctx, "test", 4)
+    # shorter than one evaluator unit: named at load, not deep inside the evaluator
+    np.save(run / "a.npy", joints[:3])
+    (run / "index.json").write_text(json.dumps({"format": "joints", "samples": [
+        {"clip_id": clip["id"], "caption": "x", "file": "a.npy"}]}))
+    with pytest.raises(ValueError, match=r"a.npy: 2 frames, fewer than one evaluator unit \(4 frames"):
+        GeneratedSource(run, ctx, "test", 4)
 
 
 def test_reconstruction_mpjpe_root_aligned_and_global(trained):

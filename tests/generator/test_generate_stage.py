@@ -50,3 +50,18 @@ def test_unknown_method_lists_the_methods():
     assert method_config(g, "party").kind == "party"
     with pytest.raises(KeyError, match=r"generator.method='nope' is not in generator.methods \(party, holistic\)"):
         method_config(g, "nope")
+
+
+def test_frame_lengths_refuse_what_no_stream_can_make():
+    from party.generator.generate import frame_lengths
+    w = {"holistic": 8, "arms": 12, "legs": 12}
+    out = frame_lengths([48, 100], w, 50)
+    assert {s: t.tolist() for s, t in out.items()} == {"holistic": [6, 12], "arms": [4, 8], "legs": [4, 8]}
+    assert frame_lengths(None, w, 50) is None and frame_lengths([None, None], w, 50) is None
+    assert frame_lengths([12, 392], w, 50)["holistic"].tolist() == [1, 49]
+    for bad in (0, -5, 7, 11, 393, 5000):             # 0 and 7 used to be rounded up to one code
+        with pytest.raises(ValueError, match=r"generate.frames: lengths must lie in \[12, 392\] frames"):
+            frame_lengths([60, bad], w, 50)
+    with pytest.raises(ValueError, match="give a length for every text or none"):
+        frame_lengths([60, None], w, 50)
+    assert frame_lengths([8], {"holistic": 8}, 50)["holistic"].tolist() == [1]      # holistic-only: its window

@@ -79,3 +79,20 @@ def test_empty_store(tmp_path):
     meta = write_token_store(tmp_path / "s", [], {}, {**META, "levels": 2})
     store = TokenStore.open(tmp_path / "s")
     assert meta["levels"] == 2 and store.codes.shape == (0, 2) and len(store) == 0
+
+
+def test_codes_changed_after_writing_are_refused(tmp_path):
+    """Same shape, other codes (an edit, bit rot): refused at open, naming codes.npy, not later as an
+    out-of-range code inside training."""
+    seqs = _sequences(np.random.default_rng(0), 1)
+    write_token_store(tmp_path / "s", seqs, {"a": 0}, META)
+    path = tmp_path / "s" / "codes.npy"
+    for value, outside in ((3, 0), (955, 1)):                  # in the codebook, and outside it
+        codes = np.load(path)
+        codes[2] = value if codes[2] != value else value + 1
+        np.save(path, codes)
+        with pytest.raises(ValueError, match=rf"codes.npy: the codes differ from those extract_tokens wrote "
+                                             rf"\(sha256 in index.json; {outside} outside the codebook \[0, 16\)\)"):
+            TokenStore.open(tmp_path / "s")
+        write_token_store(tmp_path / "s", seqs, {"a": 0}, META)
+    assert np.array_equal(TokenStore.open(tmp_path / "s").get("a"), seqs[0][1])

@@ -201,7 +201,7 @@ def generation_scorer(cfg, replications: int):
     embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
 
     def score(gen_dir: Path) -> dict:
-        src = GeneratedSource(gen_dir, ctx)
+        src = GeneratedSource(gen_dir, ctx, ec.split, ec.unit_length)
         res = run_protocol(protocol, gt, embedders, {}, [src], parts, sc_ref, ctx.n_joints, ctx.layout,
                            progress=False)[src.name]
         row = {}

@@ -73,7 +73,8 @@ def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_refere
     toks = tokenizer_sources(cfg, ctx, device)
     spec = ec.sources.generated
     spec = list(spec) if isinstance(spec, ListConfig) else spec
-    generated = [GeneratedSource(p, ctx) for p in discover_generated(spec, ec.sources.generated_dir)]
+    generated = [GeneratedSource(p, ctx, ec.split, ec.unit_length)
+                 for p in discover_generated(spec, ec.sources.generated_dir)]
     names = [g.name for g in generated]
     reserved = {"ground_truth"} | {f"recon_{s}" for s in toks}
     clash = sorted({n for n in names if names.count(n) > 1 or n in reserved})

@@ -206,9 +206,16 @@ def load_tokenizer_source(ckpt: Path, stream: str, ctx: DataContext, device: tor
 
 
 class GeneratedSource:
-    """A generated run folder (see module docstring); features are loaded once."""
+    """A generated run folder (see module docstring); features are loaded once.
 
-    def __init__(self, run_dir: str | Path, ctx: DataContext):
+    With ``split`` every sample must name a clip of that split (a run generated from another
+    split's captions, or an edited index, is refused) and ``coverage`` = (clips of the run, clips
+    of the split): a run may cover part of the split (MultiModality on a subset), which the
+    evaluate stage reports. With ``min_frames`` every sample must have at least that many frames
+    (one evaluator unit), checked at load time so the error names the file."""
+
+    def __init__(self, run_dir: str | Path, ctx: DataContext, split: str | None = None,
+                 min_frames: int | None = None):
         self.dir = Path(run_dir)
         path = self.dir / "index.json"
         try:
@@ -229,9 +236,21 @@ class GeneratedSource:
                 if k not in s:
                     raise ValueError(f"{path}: a sample lacks '{k}': {s}")
             f = self._load(self.dir / s["file"], fmt, bool(meta.get("normalized", False)), ctx)
+            if min_frames is not None and len(f) < min_frames:
+                raise ValueError(f"{self.dir / s['file']}: {len(f)} frames, fewer than one evaluator unit "
+                                 f"({min_frames} frames, eval.unit_length)")
             tokens = s.get("tokens") or toks.get((s["clip_id"], s["caption"]))
             self.by_clip[s["clip_id"]].append((s["caption"], tokens, f, content_key(f)))
         self.clip_ids = sorted(self.by_clip)
+        self.coverage = None
+        if split is not None:
+            in_split = {c["id"] for c in ctx.index.clips(split)}
+            outside = [c for c in self.clip_ids if c not in in_split]
+            if outside:
+                raise ValueError(f"{path}: {len(outside)} clip(s) of its samples are not in the {split!r} split "
+                                 f"(e.g. {outside[:3]}); generate the run from that split's captions "
+                                 "(generator.generate.split = eval.split)")
+            self.coverage = (len(self.clip_ids), len(in_split))
 
     @staticmethod
     def _load(file: Path, fmt: str, normalized: bool, ctx: DataContext) -> np.ndarray:

@@ -144,6 +144,24 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
             "params": counts["total"]}
 
 
+def frame_lengths(frames: Sequence[int | None] | None, windows: dict[str, int],
+                  max_tokens: int) -> dict[str, torch.Tensor] | None:
+    """Requested lengths in frames -> code counts per stream ({stream: (B,)}), None when none is
+    given. Every length must give each stream at least one code and at most ``max_tokens - 1``:
+    [largest window, smallest (max_tokens - 1) x window] frames; a value outside (0, a negative
+    number, fewer frames than a code) is an error, never rounded into range."""
+    if frames is None or all(f is None for f in frames):
+        return None
+    if any(f is None for f in frames):
+        raise ValueError("generate.frames: give a length for every text or none")
+    lo, hi = max(windows.values()), min((max_tokens - 1) * w for w in windows.values())
+    if any(not lo <= int(f) <= hi for f in frames):
+        raise ValueError(f"generate.frames: lengths must lie in [{lo}, {hi}] frames (code windows {windows}, "
+                         f"at most generator.model.max_tokens - 1 = {max_tokens - 1} codes per stream); "
+                         f"got {list(frames)}")
+    return {s: torch.tensor([int(f) // w for f in frames]) for s, w in windows.items()}
+
+
 def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Sequence[int | None] | None,
                    out_dir: str | Path, formats: Sequence[str], progress: bool) -> list[dict]:
     """People's generation: each text -> features, joints, GIF (titled) and BVH under ``out_dir``."""
@@ -165,19 +183,7 @@ def generate_texts(cfg, method_dir: str | Path, texts: Sequence[str], frames: Se
             raise ValueError(f"{method_dir}: the random-codes baseline does not read texts; pick a trained method")
         ctx, tokenizers_dir = load_context(cfg), meta["tokenizers_dir"]
         emb = embed_texts(cfg, list(texts))
-    lengths = None
-    if frames is not None and any(f is not None for f in frames):
-        lengths = {}
-        for s in model.spec.streams:
-            w = meta["windows"][s]
-            n = [max(1, int(f) // w) if f is not None else None for f in frames]
-            if any(x is not None and not 1 <= x <= model.spec.max_tokens - 1 for x in n):
-                lo, hi = w, (model.spec.max_tokens - 1) * w
-                raise ValueError(f"generate.frames: lengths must lie in [{lo}, {hi}] frames for stream {s} "
-                                 f"(window {w}, generator.model.max_tokens {model.spec.max_tokens}); got {list(frames)}")
-            if any(x is None for x in n):
-                raise ValueError("generate.frames: give a length for every text or none")
-            lengths[s] = torch.tensor(n)
+    lengths = frame_lengths(frames, {s: meta["windows"][s] for s in model.spec.streams}, model.spec.max_tokens)
     decode = Decoder(tokenizers_dir, model.spec.kind, ctx, meta["streams"])
     feats = generate_batches(model, emb, lengths, cfg.generator.generate, decode, progress)
     out = []

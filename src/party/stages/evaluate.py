@@ -51,11 +51,18 @@ def run(cfg: DictConfig, run_) -> dict:
         "replications": ec.replications, "evaluators": {s: ev.kind for s, ev in evaluators.items()},
         "seconds": round(time.time() - t0, 1), "device": str(inp.device), "workers": workers,
         "subsets": {k: {"clips": len(ids), "description": d} for k, (ids, d) in subsets.items()},
+        "generated_clips": {g.name: g.coverage[0] for g in generated},
     }
     metrics = {"summary": summary, "results": results, "efficiency": eff}
     header = (f"## Evaluation: {ctx.index.dataset} / {ec.split} ({len(gt.ds)} clips), {ec.replications} "
               f"replications, mean ± 95% CI\n\nEvaluators: "
               + ", ".join(f"{s} ({ev.kind})" for s, ev in evaluators.items()))
+    partial = [f"{g.name} {g.coverage[0]} of {g.coverage[1]}" for g in generated if g.coverage[0] < g.coverage[1]]
+    if partial:                         # a run's rows are then scored on its clips only: say so
+        log.warning("generated runs covering part of the %s split (scored on their clips only): %s",
+                    ec.split, ", ".join(partial))
+        header += ("\n\nGenerated runs covering part of the split, scored on their clips only: "
+                   + ", ".join(partial) + " clips.")
     tables = report(results, eff, switches, header, ec.large_batch_size, whole_stream=ctx.layout.whole_stream,
                     part_streams=ctx.layout.part_streams, subsets={k: d for k, (_, d) in subsets.items()})
     with atomic_dir(ec.out_dir) as tmp:

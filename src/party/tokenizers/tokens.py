@@ -49,6 +49,15 @@ class TokenStore:
         if codes.shape != want:
             raise ValueError(f"{codes_path}: holds {codes.shape} codes, index says {want}; "
                              "rerun `party extract_tokens`")
+        # the codes as written (a few MB even for HumanML3D): an edited or damaged file fails here,
+        # naming itself, instead of as an out-of-range code deep inside training
+        digest = index["meta"].get("sha256")      # stores written by hand (tests) carry none
+        if digest is not None and hashlib.sha256(np.ascontiguousarray(codes).tobytes()).hexdigest() != digest:
+            n_codes = int(index["meta"]["codebook_size"])
+            out = int(((np.asarray(codes) < 0) | (np.asarray(codes) >= n_codes)).sum())
+            raise ValueError(f"{codes_path}: the codes differ from those extract_tokens wrote (sha256 in "
+                             f"index.json; {out} outside the codebook [0, {n_codes})): changed or damaged "
+                             "since; rerun `party extract_tokens`")
         return cls(root, codes, index)
 
     @property
