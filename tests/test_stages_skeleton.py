@@ -87,6 +87,27 @@ def test_a_stage_that_raises_leaves_a_failed_run_with_the_error(tmp_path):
     assert art and "Traceback" in art[0].read_text()
 
 
+def test_a_generator_that_has_not_learned_fails_its_stage_unless_warned(tmp_path, monkeypatch):
+    """As a collapsed tokenizer fails train_vqvae: the outputs are written (by train_generator), then
+    the stage raises, so `dvc repro` stops there; `on_untrained: warn` lets it through; the random
+    baseline (nothing learned by design) never fails."""
+    from party.config import load_params
+    from party.stages import train_generator as stage_mod
+
+    learned = {"learned": False, "final": {"val/loss": 5.4}, "untrained": {"val/loss": 5.5}}
+    monkeypatch.setattr(stage_mod, "train_generator", lambda cfg, method, out, run: dict(learned))
+    cfg = load_params(_params(tmp_path, "generator.method=holistic"))
+    with pytest.raises(RuntimeError, match=r"holistic: generator has not learned: validation loss 5.400 vs 5.500 "
+                                           r"untrained .* generator.train.on_untrained=warn"):
+        stage_mod.run(cfg)
+    assert stage_mod.run(load_params(_params(tmp_path, "generator.method=holistic",
+                                             "generator.train.on_untrained=warn")))["learned"] is False
+    monkeypatch.setattr(stage_mod, "train_generator", lambda cfg, method, out, run: {"kind": "random"})
+    assert stage_mod.run(load_params(_params(tmp_path, "generator.method=random")))["kind"] == "random"
+    with pytest.raises(ValueError, match="on_untrained must be error or warn, got 'eror'"):
+        stage_mod.run(load_params(_params(tmp_path, "generator.train.on_untrained=eror")))
+
+
 def test_overriding_a_source_key_at_stage_time_is_refused():
     with pytest.raises(DivergingOverride, match=r"text\.index_path"):
         check_overrides(["paths.prepared=/elsewhere"], "embed_texts", ROOT / "conf")

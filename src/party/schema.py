@@ -687,6 +687,7 @@ class GenTrain:
     render_max_frames: int = MISSING
     prompts: List[str] = MISSING
     untrained_loss_ratio: float = MISSING
+    on_untrained: str = MISSING       # error | warn
 
 
 @dataclass

@@ -234,6 +234,7 @@ def train_generator(cfg, method: str, out_dir: str | Path, run, callbacks: list 
         final = _evaluate(model, val_loader)
         metrics = {"method": method, "kind": model.spec.kind, "step": int(trainer.global_step), "params": counts,
                    "final": final, "untrained": untrained, "precision": precision,
+                   "learned": bool(final["val/loss"] < t.untrained_loss_ratio * untrained["val/loss"]),
                    "train_seconds_this_run": round(time.time() - t0, 1)}
         run.log_metrics({f"final/{k.split('/', 1)[1]}": v for k, v in final.items()}, step=int(trainer.global_step))
         run.log_metrics({f"untrained/{k.split('/', 1)[1]}": v for k, v in untrained.items()})
@@ -302,7 +303,7 @@ def _report(method: str, m: dict, max_ratio: float) -> None:
     accs = " ".join(f"{k.split('_', 1)[1]} {f[k]:.2f} (untrained {u[k]:.2f})" for k in f if k.startswith("val/acc_"))
     print(f"train_generator[{method}]: step {m['step']} val loss {f['val/loss']:.3f} (untrained "
           f"{u['val/loss']:.3f}); next-token accuracy {accs}; {m['params']['total'] / 1e6:.2f}M params")
-    if f["val/loss"] >= max_ratio * u["val/loss"]:
+    if not m["learned"]:
         log.error("generator %s: validation loss %.3f is not clearly below the untrained model's %.3f "
                   "(generator.train.untrained_loss_ratio %.2f): it has not learned (budget too small, or broken)",
                   method, f["val/loss"], u["val/loss"], max_ratio)

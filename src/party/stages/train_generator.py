@@ -4,7 +4,9 @@ Reads the token stores (``generator.tokens_dir``), the caption and part-text emb
 (``text.embeddings_dir``, ``text.part_texts_path``) and ``generator.*``; writes
 ``<generator.out_dir>/<method>/`` (``model.pt``, ``last.ckpt``, ``config.json``,
 ``metrics.json``; see ``party.generator.train``), resuming from
-``<generator.resume_dir>/<method>/<config hash>/`` after an interruption.
+``<generator.resume_dir>/<method>/<config hash>/`` after an interruption. A generator whose
+validation loss is not clearly below its untrained weights' (``generator.train.untrained_loss_ratio``)
+fails the stage after its outputs are written (``generator.train.on_untrained: error``).
 """
 from __future__ import annotations
 
@@ -18,4 +20,14 @@ from party.stage import stage
        tags=lambda cfg: {"party.method": cfg.generator.method})
 def run(cfg, run_) -> dict:
     method = str(cfg.generator.method)
-    return train_generator(cfg, method, Path(cfg.generator.out_dir) / method, run_)
+    if cfg.generator.train.on_untrained not in ("error", "warn"):      # before training, not after
+        raise ValueError(f"generator.train.on_untrained must be error or warn, got "
+                         f"{cfg.generator.train.on_untrained!r}")
+    out = Path(cfg.generator.out_dir) / method
+    metrics = train_generator(cfg, method, out, run_)
+    if metrics.get("learned") is False and cfg.generator.train.on_untrained == "error":   # random: no key
+        raise RuntimeError(f"{out}: generator has not learned: validation loss {metrics['final']['val/loss']:.3f} "
+                           f"vs {metrics['untrained']['val/loss']:.3f} untrained (ratio above "
+                           f"generator.train.untrained_loss_ratio {cfg.generator.train.untrained_loss_ratio}); "
+                           "outputs and checkpoint kept; generator.train.on_untrained=warn to continue anyway")
+    return metrics
