@@ -52,7 +52,7 @@ class TokenStore:
         # the codes as written (a few MB even for HumanML3D): an edited or damaged file fails here,
         # naming itself, instead of as an out-of-range code deep inside training
         digest = index["meta"].get("sha256")      # stores written by hand (tests) carry none
-        if digest is not None and hashlib.sha256(np.ascontiguousarray(codes).tobytes()).hexdigest() != digest:
+        if digest is not None and _digest(codes) != digest:
             n_codes = int(index["meta"]["codebook_size"])
             out = int(((np.asarray(codes) < 0) | (np.asarray(codes) >= n_codes)).sum())
             raise ValueError(f"{codes_path}: the codes differ from those extract_tokens wrote (sha256 in "
@@ -90,6 +90,11 @@ def _levels(meta: Mapping) -> int:
     return int(meta["levels"]) if "levels" in meta else 1
 
 
+def _digest(codes: np.ndarray) -> str:
+    """The store's fingerprint (``meta["sha256"]``): sha256 of the codes' bytes as written."""
+    return hashlib.sha256(np.ascontiguousarray(codes).tobytes()).hexdigest()
+
+
 def _codes_shape(n: int, levels: int) -> tuple[int, ...]:
     return (n,) if levels == 1 else (n, levels)
 
@@ -123,7 +128,7 @@ def write_token_store(root: str | Path, sequences: Iterable[tuple[dict, np.ndarr
     if len(flat) and (flat.min() < 0 or flat.max() >= n_codes):
         raise ValueError(f"codes outside [0, {n_codes}) for {root}")
     meta = {**meta, "levels": levels, "n_entries": len(entries), "n_codes_total": int(len(flat)),
-            "sha256": hashlib.sha256(np.ascontiguousarray(flat).tobytes()).hexdigest()}
+            "sha256": _digest(flat)}
     with atomic_dir(root) as tmp:
         save_npy(tmp / "codes.npy", flat)
         write_json(tmp / "index.json", {"meta": meta, "entries": entries, "keys": dict(keys)}, indent=None)
