@@ -332,6 +332,44 @@ def test_protocol_shares_merge_to_the_whole(trained, tmp_path):
     assert "multimodality" in whole["noisy"]["holistic"] and "reconstruction" in whole["recon_legs"]
 
 
+def test_protocol_reads_the_whole_body_stream_from_the_layout(trained, tmp_path):
+    """Under a part layout naming its whole-body stream ``body``, the protocol gives the default
+    layout's numbers under that name: every evaluator scores the whole-body tokenizer's
+    reconstructions (all joints in their MPJPE), TC/SC score them, MultiModality reads its evaluator."""
+    from dataclasses import replace
+
+    from omegaconf import OmegaConf
+
+    from party.evaluation.parallel import protocol_inputs, run_protocol_on
+    from party.evaluation.protocol import run_protocol
+    from party.evaluation.sources import TokenizerSource
+    from party.motion.parts import PartLayout
+
+    cfg, subset = _share_setup(trained, tmp_path)
+    ctx = load_context(cfg)
+    write_real_tokenizer(tmp_path / "tok/holistic", "holistic", ctx)
+    inp = protocol_inputs(cfg)
+    inp.subsets = {"even": (subset, "even clips")}
+    default = run_protocol_on(cfg, inp)
+    assert "recon_holistic" in default and "multimodality" in default["noisy"]["holistic"]
+
+    name = {"holistic": "body", "recon_holistic": "recon_body"}
+    pc = {**ctx.parts_cfg, "streams": [name.get(s, s) for s in ctx.parts_cfg["streams"]]}
+    body = replace(ctx, layout=PartLayout.from_config(pc, ctx.n_joints), parts_cfg=pc)
+    assert body.layout.whole_stream == "body"
+    toks = {name.get(s, s): TokenizerSource(src.tok, name.get(s, s), body, torch.device("cpu"),
+                                            memo=src.memo is not None)     # the same batches: the same floats
+            for s, src in inp.tokenizers.items()}
+    embedders = {name.get(s, s): Embedder(ev, cfg.eval.embed_batch_size) for s, ev in inp.evaluators.items()}
+    res = run_protocol(OmegaConf.to_container(cfg.eval, resolve=True), inp.gt, embedders, toks, inp.generated,
+                       inp.parts, inp.sc_ref, body.n_joints, body.layout, progress=False, subsets={"even": subset})
+
+    def renamed(d):
+        return {name.get(k, k): renamed(v) for k, v in d.items()} if isinstance(d, dict) else d
+
+    assert json.dumps(res) == json.dumps(renamed(default))
+
+
 def test_evaluate_stage_in_worker_processes_equals_one_process(trained, tmp_path):
     """``eval.workers`` 2 (spawned processes) writes the same metrics as 1."""
     from party.stages import evaluate

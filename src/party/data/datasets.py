@@ -112,7 +112,7 @@ class WindowDataset(Dataset):
         self.window = window
         self.random_crop = random_crop
         self.idx = None
-        if layout is not None and stream != "holistic":
+        if layout is not None and stream != layout.whole_stream:
             self.idx = torch.as_tensor(layout.index(stream))
 
     def __len__(self) -> int:

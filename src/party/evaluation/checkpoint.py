@@ -102,8 +102,9 @@ def load_trained(path: str | Path, device: str | torch.device = "cpu", text_enco
 
 def load_reference(path: str | Path, glove_dir: str | Path, mean: np.ndarray, std: np.ndarray,
                    dims: Mapping, unit_length: int = 4, max_text_len: int = 20,
-                   device: str | torch.device = "cpu", pad_to: int = 196) -> Evaluator:
-    """Load the published T2M evaluator (GloVe + POS text input; features minus the 4 contacts)."""
+                   device: str | torch.device = "cpu", pad_to: int = 196, stream: str = "holistic") -> Evaluator:
+    """Load the published T2M evaluator (GloVe + POS text input; features minus the 4 contacts);
+    ``stream``: the whole-body stream it scores (``PartLayout.whole_stream``)."""
     ckpt = torch_load(path, "the published evaluator's download (evaluator.reference.checkpoint)")
     mean, std = np.asarray(mean, dtype=np.float32), np.asarray(std, dtype=np.float32)
     if mean.shape != std.shape or mean.ndim != 1:
@@ -112,7 +113,7 @@ def load_reference(path: str | Path, glove_dir: str | Path, mean: np.ndarray, st
     if dims.get("pos_size", pos_dim()) != pos_dim():
         raise ValueError("the reference evaluator uses the 15-way POS one-hot")
     ev = Evaluator(range(mean.shape[0] - 4), mean, std, feat, text_in_dim=feat.dim, unit_length=unit_length,
-                   stream="holistic", kind="reference", pad_to=pad_to, **dims)
+                   stream=stream, kind="reference", pad_to=pad_to, **dims)
     ev = _load_states(ev, ckpt, path).to(device)
     log.info("loaded reference evaluator %s (epoch %s)", path, ckpt.get("epoch"))
     return ev

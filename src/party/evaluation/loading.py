@@ -40,7 +40,7 @@ def load_evaluators(cfg: DictConfig, ctx: DataContext, device: torch.device) -> 
             if not r.mean:
                 log.warning("reference evaluator without its own mean/std: using the dataset's Mean.npy/Std.npy")
             out[s] = load_reference(r.checkpoint, r.glove_dir, mean, std, dims, evc.unit_length,
-                                    evc.max_text_len, device, evc.max_motion_len)
+                                    evc.max_text_len, device, evc.max_motion_len, stream=s)
         else:
             path = Path(evc.out_dir) / s / "finest.tar"
             if not path.exists():

@@ -1,7 +1,7 @@
 """``evaluate``'s protocol in several processes, a share of the evaluator streams each.
 
 On the CPU the protocol (embedding crops with the evaluators, FIDs, reconstructions, TC/SC) loses
-from a second thread: on the default pipeline's outputs (session 19's models, 2 cores), 153 s with
+from a second thread: on the default pipeline's outputs (2 cores), 153 s with
 1 thread, 166 s with 2 (LAPACK's eigvalsh alone 14 ms at 1 thread, 45 ms at 2). Processes that each
 score some evaluator streams with one thread use every core instead: 121 s with two
 (``holistic`` | ``arms, legs``), 135 s with three on the two cores. Each share draws the same
@@ -12,10 +12,11 @@ the one-process result exactly, whatever the number of workers (a test checks it
     inputs = protocol_inputs(cfg)                     # what the protocol reads, loaded from config
     results, sc_ref = run_shared(cfg, inputs, workers=3)
 
-Shares: ``holistic`` alone, first, with TC/SC and MultiModality (which read its evaluator), the
-other streams dealt round-robin over the other workers; a tokenizer's reconstruction error is
-computed in the share scoring its stream (else the first). What every share repeats: the draws,
-the holistic tokenizer's reconstructions (each evaluator scores them), loading. Each worker loads
+Shares: the whole-body stream (``PartLayout.whole_stream``; ``holistic`` in the default layout)
+alone, first, with TC/SC and MultiModality (which read its evaluator), the other streams dealt
+round-robin over the other workers; a tokenizer's reconstruction error is computed in the share
+scoring its stream (else the first). What every share repeats: the draws, the whole-body
+tokenizer's reconstructions (each evaluator scores them), loading. Each worker loads
 what it needs itself (``spawn``: nothing of the parent's torch state is inherited) and runs
 ``max(1, threads // workers)`` threads.
 """
@@ -125,7 +126,8 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
     from party.evaluation.protocol import merge_results
 
     streams = list(inp.evaluators)
-    first = [s for s in streams if s == "holistic"]          # the whole-body stream alone: it has the extras
+    whole = inp.ctx.layout.whole_stream
+    first = [s for s in streams if s == whole]               # the whole-body stream alone: it has the extras
     rest = [s for s in streams if s not in first]
     shares = [first] + [rest[i::workers - 1] for i in range(workers - 1)] if first else \
         [streams[i::workers] for i in range(workers)]

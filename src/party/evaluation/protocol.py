@@ -129,7 +129,8 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                  parts: Parts | None, sc_ref: SCReference | None, n_joints: int, layout=None,
                  progress: bool = True, subsets: Mapping[str, set[str]] | None = None,
                  stream_order: list[str] | None = None, extras: bool = True,
-                 mpjpe: set[str] | None = None, position: int = 0) -> dict[str, dict[str, dict]]:
+                 mpjpe: set[str] | None = None, position: int = 0,
+                 whole_stream: str | None = None) -> dict[str, dict[str, dict]]:
     """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}, <subset>: {stream: ...}}}
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
@@ -142,10 +143,14 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     here, ``mpjpe`` the tokenizers whose reconstruction error is computed here (None: every one).
     Each replication draws the sources from its own generator and each stream's metrics from a
     generator of its own (spawned by stream index in ``stream_order``), so the numbers do not
-    depend on how the streams are shared out."""
+    depend on how the streams are shared out.
+
+    ``whole_stream``: the whole-body stream (default: ``layout.whole_stream``); every evaluator scores
+    its tokenizer's reconstructions, TC/SC score them, MultiModality reads its evaluator."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
+    whole = whole_stream_of(layout, whole_stream)
     order_streams = list(stream_order or embedders)
     scorer = (CoherenceScorer(parts, sc_ref, coh, n_joints)
               if extras and coh["enabled"] and parts is not None else None)
@@ -161,16 +166,16 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
         if cfg["sources"]["ground_truth"]:
             sets["ground_truth"] = (gt, list(embedders), True)
         for stream, src in tokenizers.items():
-            streams = list(embedders) if stream == "holistic" else [s for s in embedders if s == stream]
+            streams = list(embedders) if stream == whole else [s for s in embedders if s == stream]
             own_error = mpjpe is None or stream in mpjpe
-            full_body = stream == "holistic" and scorer is not None
+            full_body = stream == whole and scorer is not None
             if not (streams or own_error or full_body):
                 continue
             rec = src.reconstruct(gt)
-            sets[f"recon_{stream}"] = (rec, streams, stream == "holistic")
+            sets[f"recon_{stream}"] = (rec, streams, stream == whole)
             if own_error:
                 rows[f"recon_{stream}"]["reconstruction"].append(
-                    reconstruction_metrics(rec, gt, layout, n_joints, cfg, recon_errors[stream]))
+                    reconstruction_metrics(rec, gt, layout, n_joints, cfg, recon_errors[stream], whole_stream=whole))
         for g in generated:
             sets[g.name] = (g.draw(rng), list(embedders), True)
         for stream, emb in embedders.items():
@@ -201,11 +206,11 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     for name, subs in sub_rows.items():
         for k, by_stream in subs.items():
             out[name][k] = {s: aggregate(v, z) for s, v in by_stream.items()}
-    if extras and "holistic" in embedders:
+    if extras and whole in embedders:
         for g in generated:
-            mm = multimodality(g, embedders["holistic"], cfg["multimodality"], int(cfg["seed"]))
+            mm = multimodality(g, embedders[whole], cfg["multimodality"], int(cfg["seed"]))
             if mm is not None:
-                out[g.name].setdefault("holistic", {})["multimodality"] = mm
+                out[g.name].setdefault(whole, {})["multimodality"] = mm
     return merge_results([out], order, order_streams)
 
 
@@ -237,35 +242,49 @@ def _rows_of(ms: MotionSet, ids: set[str]) -> torch.Tensor:
     return torch.tensor([i for i, k in enumerate(ms.keys) if k in ids], dtype=torch.long)
 
 
+def whole_stream_of(layout, whole_stream: str | None = None) -> str:
+    """``whole_stream`` if given, else the whole-body stream of the part layout
+    (``PartLayout.whole_stream``)."""
+    if whole_stream is not None:
+        return whole_stream
+    if layout is None:
+        raise ValueError("the whole-body stream is unknown: pass the part layout or whole_stream")
+    return layout.whole_stream
+
+
 def reconstruction_metrics(rec: MotionSet, gt: MotionSet, layout, n_joints: int, cfg: Mapping,
-                           memo: dict[bytes, tuple[float, float, int]] | None = None) -> dict[str, float]:
-    """MPJPE (mm) over the reconstructed frames: all joints (holistic) or the stream's joints (parts).
+                           memo: dict[bytes, tuple[float, float, int]] | None = None,
+                           whole_stream: str | None = None) -> dict[str, float]:
+    """MPJPE (mm) over the reconstructed frames: all joints (the whole-body stream, ``whole_stream``,
+    default ``layout.whole_stream``; also a reconstruction naming no stream) or the stream's joints (parts).
 
     ``mpjpe_mm``: root-aligned per frame (pelvis subtracted from both, the
     MoMask / T2M-GPT convention); ``mpjpe_global_mm``: positions as recovered,
     including root-trajectory drift. ``memo``: per-clip error sums keyed by the ground-truth
     crop's content (a crop's reconstruction is deterministic), reused across replications.
     """
-    stream = rec.extra.get("stream", "holistic")
+    whole = whole_stream_of(layout, whole_stream)
+    stream = rec.extra.get("stream", whole)
     scale = float(cfg["mpjpe_scale"])
     memo = {} if memo is None else memo
     err_local = err_global = 0.0
     count = 0
     for key, g_full, r_full in zip(gt.content_keys, gt.feats, rec.feats, strict=True):
         if key not in memo:
-            memo[key] = _clip_errors(g_full, r_full, stream, layout, n_joints)
+            memo[key] = _clip_errors(g_full, r_full, stream == whole, stream, layout, n_joints)
         e_local, e_global, n = memo[key]
         err_local, err_global, count = err_local + e_local, err_global + e_global, count + n
     count = max(count, 1)
     return {"mpjpe_mm": scale * err_local / count, "mpjpe_global_mm": scale * err_global / count}
 
 
-def _clip_errors(g_full: np.ndarray, r_full: np.ndarray, stream: str, layout, n_joints: int
+def _clip_errors(g_full: np.ndarray, r_full: np.ndarray, whole: bool, stream: str, layout, n_joints: int
                  ) -> tuple[float, float, int]:
-    """(sum of root-aligned errors, sum of global errors, joint-frames) of one reconstruction."""
+    """(sum of root-aligned errors, sum of global errors, joint-frames) of one reconstruction;
+    ``whole``: ``stream`` is the whole-body stream (every joint)."""
     from party.motion import recover_from_ric
 
-    if stream == "holistic":
+    if whole:
         T = len(r_full)
         pj = recover_from_ric(torch.from_numpy(r_full), n_joints)
         gj = recover_from_ric(torch.from_numpy(g_full[:T].astype(np.float32)), n_joints)
