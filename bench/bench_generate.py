@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from party.generator import GeneratorSpec, PartyGenerator
+from party.methods.party.model import GeneratorSpec, PartyGenerator
 
 REPO = Path(__file__).resolve().parents[1]
 

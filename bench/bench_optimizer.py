@@ -19,7 +19,7 @@ import torch
 from omegaconf import OmegaConf
 
 from party.config import compose
-from party.generator import GeneratorSpec, PartyGenerator
+from party.methods.party.model import GeneratorSpec, PartyGenerator
 from party.tokenizers.config import stream_config
 from party.tokenizers.vqvae import build_model
 from party.training import adam

@@ -41,11 +41,10 @@ def tokenizer_step(cfg):
 
 def generator_step(cfg):
     from party.generator.data import build_generator_data, collate_generator
-    from party.generator.train import build_model
+    from party.methods import family_of
 
     ds = build_generator_data(cfg, "train")
-    model = build_model(cfg, "party", ds)
-    model.set_text_stats(ds.caption_embeddings)
+    model = family_of(cfg.generator, "party").build_model(cfg, "party", ds)     # text statistics set
     bs = int(cfg.generator.train.batch_size)
     g = torch.Generator().manual_seed(0)
     batches = [collate_generator([ds[int(i)] for i in torch.randint(len(ds), (bs,), generator=g)], ds.pad)

@@ -29,8 +29,11 @@ from omegaconf import OmegaConf
 
 from party.data.context import load_context
 from party.data.synthetic.checks import OTHER, kick_kept, wave_kept
-from party.generator.generate import Decoder, embed_texts, generate_batches
-from party.generator.train import load_generator
+import torch
+
+from party.generator.generate import embed_texts
+from party.methods import load_method
+from party.methods.tokens import TokenDecoder
 from party.motion.features import recover_from_ric_np
 
 PROMPTS = [("wave", "left", "a person is waving using the left hand"),
@@ -78,15 +81,22 @@ def main() -> None:
         gcfg.part_cond_scale = a.part_cond_scale
     report = {}
     for m in a.methods:
-        model, meta = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
-        lengths = {s: __import__("torch").full((len(texts),), max(1, a.frames // meta["windows"][s]))
-                   for s in model.spec.streams}
-        decode = Decoder(meta["tokenizers_dir"], model.spec.kind, ctx, meta["streams"])
-        parts = Decoder(meta["tokenizers_dir"], "partwise", ctx, meta["streams"]) \
-            if a.part_streams and model.spec.kind == "party" else None
-        pairs = generate_batches(model, emb, lengths, gcfg,
-                                 lambda codes: (decode(codes), None if parts is None else parts(codes)), progress=False)
-        feats, part_feats = [f for f, _ in pairs], [q for _, q in pairs]
+        trained = load_method(Path(a.generators or cfg.generator.out_dir) / m).bind(ctx)
+        meta, whole = trained.meta, ctx.layout.whole_stream
+        lengths = {s: torch.full((len(texts),), max(1, a.frames // meta["windows"][s])) for s in trained.streams}
+        part_streams = [s for s in trained.streams if s != whole]
+        # ParTY (whole-body and part codes): also decode its part codes alone, composed
+        parts = TokenDecoder(meta["tokenizers_dir"], ctx, part_streams) \
+            if a.part_streams and whole in trained.streams and part_streams else None
+        gen, B = torch.Generator().manual_seed(gcfg.seed), gcfg.batch_size
+        feats, part_feats = [], []
+        for b0 in range(0, len(texts), B):
+            codes = trained.codes(torch.as_tensor(emb[b0:b0 + B], dtype=torch.float32),
+                                  {k: v[b0:b0 + B] for k, v in lengths.items()}, gcfg, gen)
+            for i in range(len(next(iter(codes.values())))):
+                one = {k: v[i] for k, v in codes.items()}
+                feats.append(trained.decode(one))
+                part_feats.append(None if parts is None else parts(one))
         rows = {}
         for n, (kind, s, p) in enumerate(PROMPTS):
             sl = slice(n * a.samples, (n + 1) * a.samples)

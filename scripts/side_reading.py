@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 
 from party.generator.data import build_generator_data, collate_generator
 from party.generator.generate import embed_texts
-from party.generator.train import load_generator
+from party.methods import load_method
 
 SWAP = {"left": "right", "right": "left"}
 
@@ -66,7 +66,7 @@ def main() -> None:
     rng = np.random.default_rng(a.seed)
     pick = rng.choice(sided, size=min(a.samples, len(sided)), replace=False)
     for m in a.methods:
-        model, _ = load_generator(Path(a.generators or cfg.generator.out_dir) / m)
+        model = load_method(Path(a.generators or cfg.generator.out_dir) / m).model
         model.eval()
         diffs: dict[str, list[np.ndarray]] = {}
         for b0 in range(0, len(pick), a.batch):

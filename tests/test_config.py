@@ -71,7 +71,7 @@ def test_stages_list_describes_each_and_help_does_not_start_hydra(capsys):
     described = [line for line in lines if not line.startswith(" ")]
     assert len(described) == len(available_stages()) and all(len(line.split(None, 1)) == 2 for line in described)
     text = "\n".join(lines)                       # inputs and outputs from dvc.yaml
-    assert "   in:  data/prepared, data/tokenizers/holistic" in text and "   out: data/tokens" in text
+    assert "   in:  data/prepared, data/tokenizers\n" in text and "   out: data/tokens" in text
     assert "out: data/eval/metrics.json, data/eval/tables.md, data/eval/report.html" in text
     assert main(["train_vqvae", "--help"]) == 0
     out = capsys.readouterr().out

@@ -80,7 +80,8 @@ def test_a_damaged_model_file_names_the_file_and_the_stage(tmp_path):
     import torch
 
     from party.evaluation.checkpoint import torch_load
-    from party.generator.train import load_generator
+    from party.methods.party import PartyFamily
+    load_generator = PartyFamily.load
     from party.io import load_torch
     from party.tokenizers import load_tokenizer
 

@@ -18,6 +18,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf/experiment").glob("*.yaml"))
+STUBS = "tests/methods/stub_families.py"
 
 
 def test_there_are_experiments_to_run():
@@ -46,7 +47,11 @@ def pipeline(request, tmp_path_factory):
     _sh(["git", "init", "-q"], work, env)
     _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
     _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "snapshot"], work, env)
-    _sh([str(BIN / "party"), "params", f"experiment={request.param}"], work, env)
+    # two method families registered from test code only (tests/methods/stub_families.py), added
+    # the way a user adds a plug-in; kept in conf/local/choices.yaml for every later composition
+    _sh([str(BIN / "party"), "params", f"experiment={request.param}", f"generator.plugins=[{STUBS}]",
+         "+generator.methods.regressor={family: stub_regressor, ridge: 1.0}",
+         "+generator.methods.twolevel={family: stub_twolevel}"], work, env)
     repro = _sh([str(BIN / "dvc"), "repro"], work, env)
     return work, env, repro
 
@@ -198,6 +203,12 @@ def test_registered_generator_generates_with_nothing_else(pipeline, tmp_path):
          f"generator.generate.out={other / 'out'}"], other, env | {"DVC_ROOT": ""})
     listed = json.loads((other / "out" / "generated.json").read_text())
     assert listed[0]["frames"] == 48 and Path(listed[0]["gif"]).is_file() and Path(listed[0]["bvh"]).is_file()
+    _sh([str(BIN / "party"), "generate", "a person kicks", "--model", uri, "--frames", "48", "--out", "plain"],
+        other, env | {"DVC_ROOT": ""})
+    assert json.loads((other / "plain" / "generated.json").read_text())[0]["frames"] == 48
+    res = _sh([sys.executable, "-c", f"import party; m = party.load({uri!r}).generate('a person kicks', frames=48)[0]; "
+               "print(m.frames, m.features.shape)"], other, env | {"DVC_ROOT": ""})
+    assert res.stdout.split()[0] == "48"
     assert not (other / "data").exists()
 
 
@@ -256,3 +267,66 @@ def test_changing_hpf_reruns_exactly_partys_training_generation_and_evaluate(pip
     assert all(r["status"] == "unchanged" for s, r in summary.items() if s not in ran)
     again = _sh([str(BIN / "dvc"), "status"], work, env)
     assert "up to date" in again.stdout.lower() or not again.stdout.strip()
+
+
+@pytest.mark.slow
+def test_plugin_families_go_through_training_generation_and_evaluation(pipeline):
+    """The stub families of tests/methods (no edit under src/): a continuous one with no
+    tokenizer and a two-level token one (codes (N, 2)) are trained, generated, scored, and shown
+    in tables.md and report.html beside the built-in methods."""
+    work, env, _ = pipeline
+    import numpy as np
+    for m, fam in (("regressor", "stub_regressor"), ("twolevel", "stub_twolevel")):
+        assert json.loads((work / f"data/generators/{m}/method.json").read_text())["family"] == fam
+        index = json.loads((work / f"data/generated/{m}/index.json").read_text())
+        assert index["family"] == fam and len(index["samples"]) > 0
+    assert not (work / "data/generators/regressor/model.pt").exists()          # no tokenizer, no token model
+    with np.load(work / "data/generators/twolevel/twolevel.npz") as z:
+        assert z["codes"].ndim == 2 and z["codes"].shape[1] == 2
+    metrics = json.loads((work / "data/generators/regressor/metrics.json").read_text())
+    assert metrics["train_mse"] < metrics["mean_pose_mse"]                     # beside its trivial baseline
+    tables = (work / "data/eval/tables.md").read_text()
+    report = (work / "data/eval/report.html").read_text()
+    for m in ("regressor", "twolevel", "party", "random"):
+        assert f"| {m} |" in tables and m in report, m
+
+
+@pytest.mark.slow
+def test_plain_generate_command_and_python_api(pipeline, tmp_path):
+    """`party generate "text" [--frames N]`: one prompt per argument (commas included), files
+    written, a run of its own; bad input is one line; `party.load` from a folder, a runs:/ URI."""
+    work, env, _ = pipeline
+    out = tmp_path / "plain"
+    _sh([str(BIN / "party"), "generate", "a person waves", "--frames", "60", "--out", str(out)], work, env)
+    _sh([str(BIN / "party"), "generate", "a person walks forward, then sits down", "--out", str(out / "two"),
+         "--formats", "npy"], work, env)
+    one = json.loads((out / "generated.json").read_text())
+    two = json.loads((out / "two" / "generated.json").read_text())
+    # 60 frames: 7 whole-body codes of 8 frames (lengths are rounded down to whole codes)
+    assert [x["frames"] for x in one] == [56] and all(Path(one[0][k]).is_file() for k in ("gif", "bvh", "joints"))
+    assert [x["text"] for x in two] == ["a person walks forward, then sits down"]
+    helped = _sh([str(BIN / "party"), "generate", "--help"], work, env).stdout
+    assert all(o in helped for o in ("--frames", "--model", "--out", "TEXT"))
+    for args, msg in ((["a person waves", "--model", "models:/nope/1"], "models:/nope/1"),
+                      (["a person waves", "--model", str(tmp_path / "none")], "no such folder"),
+                      (["  "], "text 0 is empty"),
+                      (["a person waves", "--frames", "5000"], "generate.frames: lengths must lie in")):
+        bad = subprocess.run([str(BIN / "party"), "generate", *args], cwd=work, env=env, capture_output=True,
+                             text=True, timeout=600)
+        assert bad.returncode == 2 and msg in bad.stderr, (args, bad.stderr[-2000:])
+        assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr[-2000:]
+    with sqlite3.connect(work / "mlruns/mlflow.db") as con:
+        names = {v for (v,) in con.execute("select name from runs")}
+        rid = con.execute("select r.run_uuid from runs r join tags t on t.run_uuid = r.run_uuid where "
+                          "t.key = 'party.method' and t.value = 'holistic' and r.name = 'train_generator-holistic'"
+                          ).fetchone()[0]
+    assert "generate-text" in names and "generate-party" in names
+    script = ("import party, sys\n"
+              "for src in sys.argv[1:]:\n"
+              "    ms = party.load(src).generate(['a person kicks', 'a person waves'], frames=[48, 64], seed=3)\n"
+              "    again = party.load(src).generate(['a person kicks', 'a person waves'], frames=[48, 64], seed=3)\n"
+              "    assert [m.frames for m in ms] == [48, 64] and ms[0].joints.shape[1:] == (22, 3)   # whole codes of 8\n"
+              "    assert all((a.features == b.features).all() for a, b in zip(ms, again))\n"
+              "    print(src, 'ok', ms[1].save_bvh('outputs/api').name)\n")
+    res = _sh([sys.executable, "-c", script, "data/generators/party", f"runs:/{rid}/generator"], work, env)
+    assert res.stdout.count(" ok ") == 2, res.stdout

@@ -3,6 +3,7 @@ a failure blocks its dependents, DVC's "didn't change" is reported as unchanged.
 executable stands in for DVC here; tests/test_pipeline.py runs the real one."""
 import json
 import os
+import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -122,3 +123,31 @@ def test_a_fresh_checkout_orders_stages_by_the_expected_times(tmp_path):
     params.write_text(yaml.safe_dump(cfg))
     with pytest.raises(ValueError, match=r"params\.yaml.*repro\.expected_seconds"):
         repro.expected_times(params)          # bad input: named, not silently unordered
+
+
+def test_an_item_without_its_own_entry_takes_its_templates_time(tmp_path):
+    """``repro.expected_seconds`` per stage template: every ``template@item`` takes the template's
+    value unless it has an entry of its own; a stage with neither stays unknown (1)."""
+    params = tmp_path / "params.yaml"
+    cfg = yaml.safe_load((ROOT / "params.yaml").read_text())
+    cfg["repro"]["expected_seconds"] = {"prep": 10, "train": 300, "train@big": 900}
+    params.write_text(yaml.safe_dump(cfg))
+    graph = {"prep": [], "train@big": ["prep"], "train@small": ["prep"], "train@other": ["prep"],
+             "eval": ["train@big", "train@small", "train@other"]}
+    times = repro.stage_times(repro.expected_times(params), graph)
+    assert times == {"prep": 10.0, "train@big": 900.0, "train@small": 300.0, "train@other": 300.0}
+    prio = repro.priorities(graph, times)
+    assert prio["train@big"] > prio["train@small"] == prio["train@other"] and prio["eval"] == 1.0
+
+
+def test_the_expected_times_cover_every_stage():
+    """conf/config.yaml's ``repro.expected_seconds`` gives every stage of the DAG a time (the items
+    of a ``foreach`` by their template's entry) and names no stage dvc.yaml lacks."""
+    expected = repro.expected_times(ROOT / "params.yaml")
+    templates = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    assert {k.split("@", 1)[0] for k in expected} <= set(templates)           # no stale entry
+    out = subprocess.run([str(Path(sys.executable).parent / "dvc"), "stage", "list", "--name-only"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    stages = out.stdout.split()
+    assert "generate@party" in stages and set(repro.stage_times(expected, stages)) == set(stages)

@@ -92,19 +92,22 @@ def test_a_generator_that_has_not_learned_fails_its_stage_unless_warned(tmp_path
     the stage raises, so `dvc repro` stops there; `on_untrained: warn` lets it through; the random
     baseline (nothing learned by design) never fails."""
     from party.config import load_params
+    from party.methods.party import PartyFamily
+    from party.methods.random_codes import RandomCodesFamily
+    from party.schema import ConfigError
     from party.stages import train_generator as stage_mod
 
     learned = {"learned": False, "final": {"val/loss": 5.4}, "untrained": {"val/loss": 5.5}}
-    monkeypatch.setattr(stage_mod, "train_generator", lambda cfg, method, out, run: dict(learned))
+    monkeypatch.setattr(PartyFamily, "train", classmethod(lambda cls, cfg, method, out, run: dict(learned)))
     cfg = load_params(_params(tmp_path, "generator.method=holistic"))
     with pytest.raises(RuntimeError, match=r"holistic: generator has not learned: validation loss 5.400 vs 5.500 "
                                            r"untrained .* generator.train.on_untrained=warn"):
         stage_mod.run(cfg)
     assert stage_mod.run(load_params(_params(tmp_path, "generator.method=holistic",
                                              "generator.train.on_untrained=warn")))["learned"] is False
-    monkeypatch.setattr(stage_mod, "train_generator", lambda cfg, method, out, run: {"kind": "random"})
-    assert stage_mod.run(load_params(_params(tmp_path, "generator.method=random")))["kind"] == "random"
-    with pytest.raises(ValueError, match="on_untrained must be error or warn, got 'eror'"):
+    monkeypatch.setattr(RandomCodesFamily, "train", classmethod(lambda cls, cfg, method, out, run: {"family": "r"}))
+    assert stage_mod.run(load_params(_params(tmp_path, "generator.method=random")))["family"] == "r"
+    with pytest.raises(ConfigError, match="generator.train.on_untrained: 'eror' is not one of error, warn"):
         stage_mod.run(load_params(_params(tmp_path, "generator.train.on_untrained=eror")))
 
 

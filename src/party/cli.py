@@ -1,6 +1,7 @@
 """``party``: one command for every pipeline stage.
 
     party <stage> [key=value ...]     run a stage on params.yaml (+ Hydra overrides)
+    party generate "a text" [...]     text to motion for people (`party generate --help`)
     party <stage> --multirun a=1,2    Hydra sweep (e.g. with hydra/launcher=submitit_slurm)
     party params [group=choice ...]   compose conf/ into params.yaml (as `dvc exp run` does);
                                       the choices are kept in conf/local/choices.yaml
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import party.stages as stages_pkg
 
+PROG = "party"                 # the command's name, as dvc.yaml's stages call it
 STAGE_ENV = "PARTY_STAGE"
 LAUNCHER = Path(__file__).resolve().parent / "launch" / "party_stage.py"
 
@@ -60,7 +62,7 @@ def stage_io(dvc_yaml: Path = Path("dvc.yaml")) -> dict[str, tuple[list[str], li
     for body in (yaml.safe_load(dvc_yaml.read_text()) or {}).get("stages", {}).values():
         body = body.get("do", body)
         words = str(body.get("cmd", "")).split()
-        if len(words) < 2 or words[0] != "party":
+        if len(words) < 2 or words[0] != PROG:
             continue
         ins, outs = out.setdefault(words[1], ([], []))
         ins += [d for d in paths(body.get("deps")) if not d.startswith("src/") and d not in ins]
@@ -287,6 +289,10 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd == "repro":
         from party.repro import main as repro_main
         return repro_main(rest)
+    if cmd == "generate":
+        from party.stages.generate import is_plain, plain
+        if is_plain(rest):
+            return plain(rest)
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2

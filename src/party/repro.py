@@ -10,7 +10,9 @@ while a stage is collected and committed), as soon as every stage it depends on 
 at most N at a time, longest remaining path first (the previous run's stage times, else
 ``repro.expected_seconds`` of params.yaml, else 1 per stage).
 So DVC still decides what is changed and records every stage in ``dvc.lock``; a stage that did
-not change is skipped by DVC as in ``dvc repro``.
+not change is skipped by DVC as in ``dvc repro``. ``repro.expected_seconds`` holds seconds per
+stage (``prepare``) or per stage template (``train_vqvae``: every ``train_vqvae@<item>`` of its
+``foreach``), and a ``template@item`` entry (``train_vqvae@arms``) overrides its template's value.
 
 Each child gets ``OMP_NUM_THREADS`` = cores // (stages running when it starts, itself included,
 at most N) unless set, which the stages' ``threads: null`` keys leave to torch: a stage that runs
@@ -28,6 +30,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 LOG_DIR = Path("logs/repro")
@@ -85,11 +88,23 @@ def previous_times(log_dir: Path) -> dict[str, float]:
 
 def expected_times(params: Path = Path("params.yaml")) -> dict[str, float]:
     """``repro.expected_seconds`` of params.yaml (read and validated as every stage reads it): the
-    stage times a fresh checkout schedules by; none without a params.yaml."""
+    stage (or stage template) times a fresh checkout schedules by; none without a params.yaml."""
     if not params.is_file():
         return {}
     from party.config import load_params
     return {str(k): float(v) for k, v in load_params(params).repro.expected_seconds.items()}
+
+
+def stage_times(expected: Mapping[str, float], stages: Iterable[str]) -> dict[str, float]:
+    """Each of ``stages``' expected seconds from ``expected`` (``expected_times``): the stage's own
+    entry (``prepare``, ``train_vqvae@arms``), else, for an item of a ``foreach`` template
+    (``train_vqvae@legs``), the template's (``train_vqvae``); a stage with neither is left out."""
+    out = {}
+    for s in stages:
+        t = expected.get(s, expected.get(s.split("@", 1)[0]) if "@" in s else None)
+        if t is not None:
+            out[s] = t
+    return out
 
 
 def child_env(jobs: int, side_by_side: int) -> dict[str, str]:
@@ -118,7 +133,7 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     Returns {"stages": {stage: {"status", "seconds"}}, "seconds": wall}; status is ran, unchanged,
     done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    prio = priorities(graph, {**expected_times(), **previous_times(log_dir)})
+    prio = priorities(graph, {**stage_times(expected_times(), graph), **previous_times(log_dir)})
     pending = set(graph)
     running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
     result: dict[str, dict] = {}

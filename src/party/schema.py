@@ -48,12 +48,12 @@ import difflib
 import functools
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, List, Literal, Mapping, Optional
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-__all__ = ["ConfigError", "Config", "validate", "SCHEMA_GROUPS"]
+__all__ = ["ConfigError", "Config", "validate", "SCHEMA_GROUPS", "step_keys"]
 
 
 class ConfigError(ValueError):
@@ -80,6 +80,36 @@ def _range(lo: float | None = None, hi: float | None = None, *, above: bool = Fa
     probabilities, positive scales), so a bad value fails here, naming the key, instead of deep
     in a stage (0 replications, a batch of 0)."""
     return field(default=MISSING, metadata={"range": (lo, hi, above, below)})
+
+
+def _choice(*values: str):
+    """A required string, one of ``values`` (OmegaConf 2.3 structured configs cannot hold
+    ``Literal``: typed str, checked here; a family's own ``Config`` may use ``Literal``)."""
+    return field(default=MISSING, metadata={"choices": values})
+
+
+def _off_step(f):
+    """Mark a field as not changing what a training step computes (a run may resume across a
+    change to it): it is left out of resume keys (``step_keys``)."""
+    kw = {"default": f.default} if f.default is not dataclasses.MISSING else {"default_factory": f.default_factory}
+    return field(**kw, metadata={**f.metadata, "step": False})
+
+
+def step_keys(cls, value: Mapping) -> dict:
+    """``value`` (a group of ``cls``) without the keys marked ``_off_step``: what changes a step."""
+    off = {f.name for f in dataclasses.fields(cls) if f.metadata.get("step") is False}
+    return {k: v for k, v in dict(value).items() if k not in off}
+
+
+def _people_only(f):
+    """Mark a ``generator.generate`` field as read only for people's texts (not a param of the
+    pipeline's ``generate`` stage: ``party.pipeline_params``)."""
+    return field(default=f.default, metadata={**f.metadata, "people": True})
+
+
+class MethodEntry:
+    """Schema type of ``generator.methods.<m>``: the dataclass of the family its ``family`` key
+    names (``party.methods``: each family declares its own ``Config``)."""
 
 
 _COUNT = functools.partial(_range, 1)           # a count of at least one (steps, batch sizes, ...)
@@ -354,16 +384,16 @@ class VQOptim:
 
 
 @dataclass
-class VQTrain:
-    max_steps: int = _COUNT()
+class VQTrain:                               # _off_step: not in the resume key
+    max_steps: int = _off_step(_COUNT())
     batch_size: int = _COUNT()
     crop: int = _COUNT()
-    val_every: int = _COUNT()
-    ckpt_every: int = MISSING
-    resume: bool = MISSING
-    threads: Optional[int] = _COUNT()
-    render_samples: int = _SOME()
-    log_checkpoint: bool = MISSING
+    val_every: int = _off_step(_COUNT())
+    ckpt_every: int = _off_step(field(default=MISSING))
+    resume: bool = _off_step(field(default=MISSING))
+    threads: Optional[int] = _off_step(_COUNT())
+    render_samples: int = _off_step(_SOME())
+    log_checkpoint: bool = _off_step(field(default=MISSING))
 
 
 @dataclass
@@ -619,15 +649,6 @@ class Eval:
 # --------------------------------------------------------------------------- generator
 
 @dataclass
-class GenMethod:                            # generator.methods.<name>
-    kind: str = MISSING                     # party | holistic | partwise | random (trivial baseline)
-    pg: bool = MISSING
-    ptg: bool = MISSING
-    hpf: bool = MISSING
-    aux: bool = MISSING
-
-
-@dataclass
 class GenModel:
     dim: int = _COUNT()
     part_layers: int = _COUNT()
@@ -642,9 +663,9 @@ class GenModel:
     pg_hidden: int = _COUNT()
     hpf_heads: int = _COUNT()
     hpf_head_dim: int = _COUNT()
-    text_norm: str = MISSING
+    text_norm: str = _choice("none", "standardize")
     cond_drop: float = _range(0, 1, below=True)
-    ptg_init: str = MISSING
+    ptg_init: str = _choice("he", "normal")
 
 
 @dataclass
@@ -672,22 +693,22 @@ class GenOptim:
 
 
 @dataclass
-class GenTrain:
+class GenTrain:                              # _off_step: not in the resume key
     batch_size: int = _COUNT()
     bucket_pool: int = _SOME()         # 0: uniform random batches; N: length-bucketed within pools of N batches
     val_split: str = MISSING
-    max_steps: int = _COUNT()
-    val_every: int = _COUNT()
-    ckpt_every: int = MISSING
-    resume: bool = MISSING
-    num_workers: int = _SOME()
-    threads: Optional[int] = _COUNT()
-    log_checkpoint: bool = MISSING
-    render_samples: int = _SOME()
-    render_max_frames: int = MISSING
-    prompts: List[str] = MISSING
-    untrained_loss_ratio: float = MISSING
-    on_untrained: str = MISSING       # error | warn
+    max_steps: int = _off_step(_COUNT())
+    val_every: int = _off_step(_COUNT())
+    ckpt_every: int = _off_step(field(default=MISSING))
+    resume: bool = _off_step(field(default=MISSING))
+    num_workers: int = _off_step(_SOME())
+    threads: Optional[int] = _off_step(_COUNT())
+    log_checkpoint: bool = _off_step(field(default=MISSING))
+    render_samples: int = _off_step(_SOME())
+    render_max_frames: int = _off_step(field(default=MISSING))
+    prompts: List[str] = _off_step(field(default=MISSING))
+    untrained_loss_ratio: float = _off_step(field(default=MISSING))
+    on_untrained: str = _off_step(_choice("error", "warn"))
 
 
 @dataclass
@@ -702,7 +723,7 @@ class GenGenerate:
     split: str = MISSING
     repeats: int = _COUNT()
     batch_size: int = _COUNT()
-    sampling: str = MISSING                 # greedy | sample
+    sampling: str = _choice("greedy", "sample")
     temperature: float = _POSITIVE()
     top_k: Optional[int] = _COUNT()
     top_p: Optional[float] = _range(0, 1, above=True)
@@ -710,14 +731,16 @@ class GenGenerate:
     use_cache: bool = MISSING
     cond_scale: float = _SOME()             # classifier-free guidance (1 = off)
     part_cond_scale: Optional[float] = _SOME()   # the Arms / Legs streams' scale (null: cond_scale)
-    lengths: str = MISSING                  # gt | free
+    lengths: str = _choice("gt", "free")    # gt: the clips' token counts | free
     min_frames: Optional[int] = _COUNT()     # free length: no END before this many frames
-    texts: Optional[List[str]] = MISSING
-    texts_file: Optional[str] = MISSING
-    frames: Optional[List[int]] = MISSING
-    run: Optional[str] = MISSING
-    out: str = MISSING
-    formats: List[str] = MISSING
+    # read only when generating for people's texts (party.pipeline_params: not params of the
+    # pipeline's generate stage)
+    texts: Optional[List[str]] = _people_only(field(default=MISSING))
+    texts_file: Optional[str] = _people_only(field(default=MISSING))
+    frames: Optional[List[int]] = _people_only(field(default=MISSING))
+    run: Optional[str] = _people_only(field(default=MISSING))
+    out: str = _people_only(field(default=MISSING))
+    formats: List[str] = _people_only(field(default=MISSING))
 
 
 @dataclass
@@ -728,7 +751,10 @@ class GenRegistry:
 @dataclass
 class Generator:
     method: str = MISSING
-    methods: Dict[str, GenMethod] = MISSING
+    # each entry: the Config of the family its `family` key names (party.methods); typed Any for
+    # OmegaConf, checked as MethodEntry
+    methods: Dict[str, Any] = field(default=MISSING, metadata={"entry": MethodEntry})
+    plugins: List[str] = MISSING                 # modules registering more method families
     streams: List[str] = MISSING
     tokens_dir: str = MISSING
     tokenizers_dir: str = MISSING
@@ -750,7 +776,7 @@ class Generator:
 
 @dataclass
 class Repro:                                 # `party repro -j N`
-    expected_seconds: Dict[str, float] = MISSING   # stage -> wall time, until logs/repro/summary.json has one
+    expected_seconds: Dict[str, float] = MISSING   # stage or template (train_vqvae) -> wall time, until logs/repro/summary.json has one
 
 
 @dataclass
@@ -795,7 +821,9 @@ def _noun(t) -> str:
     origin = typing.get_origin(t)
     if origin in (list, List):
         s = f"list of {_noun(typing.get_args(t)[0])}"
-    elif origin in (dict, Dict) or dataclasses.is_dataclass(t):
+    elif origin is Literal:
+        s = "one of " + ", ".join(map(str, typing.get_args(t)))
+    elif origin in (dict, Dict) or dataclasses.is_dataclass(t) or t is MethodEntry:
         s = "mapping"
     else:
         s = {bool: "bool", int: "int", float: "number", str: "string", Any: "value"}.get(t, str(t))
@@ -804,6 +832,8 @@ def _noun(t) -> str:
 
 def _describe(t) -> str:
     s = _noun(t)
+    if s.startswith("one of "):
+        return s
     return ("an " if s[0] in "aeiou" else "a ") + s + (" (true/false)" if s == "bool" else "")
 
 
@@ -842,6 +872,8 @@ def _matches(value, t) -> bool:
         return isinstance(value, (int, float)) and not isinstance(value, bool)
     if t is str:
         return not isinstance(value, (list, tuple, dict, Mapping))
+    if origin is Literal:
+        return any(value == a and type(value) is type(a) for a in typing.get_args(t))
     if origin is typing.Union:
         return any(_matches(value, a) for a in typing.get_args(t))
     if origin in (list, List):
@@ -856,7 +888,8 @@ def _hints(cls) -> dict:
     return typing.get_type_hints(cls)
 
 
-def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bounds: tuple | None = None) -> None:
+def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bounds: tuple | None = None,
+           entry: type | None = None) -> None:
     if _is_missing(value):
         return
     t, optional = _unoptional(t)
@@ -869,6 +902,8 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bou
             _fail(where, key, f"{_short(value)} is not " + " or ".join(_describe(u) for u in union))
         return
     origin = typing.get_origin(t)
+    if t is MethodEntry:
+        t = _family_config(value, key, where)
     if dataclasses.is_dataclass(t):
         if not isinstance(value, Mapping):
             _fail(where, key, f"{_short(value)} is not a mapping (a group of keys)")
@@ -884,7 +919,10 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bou
             sub = _join(key, f.name)
             if f.name in value:
                 _check(hints[f.name], value[f.name], sub, where, partial, f.metadata.get("union", ()),
-                       f.metadata.get("range"))
+                       f.metadata.get("range"), f.metadata.get("entry"))
+                choices = f.metadata.get("choices")
+                if choices and not _is_missing(value[f.name]) and value[f.name] not in choices:
+                    _fail(where, sub, f"{_short(value[f.name])} is not one of {', '.join(choices)}")
             elif not partial and f.default is not None:         # required (MISSING or a group)
                 raise ConfigError(f"{where}: missing key {sub} (required by the schema)", sub)
     elif origin in (dict, Dict):
@@ -894,7 +932,7 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bou
         for k, v in value.items():
             if not isinstance(k, str):
                 _fail(where, _join(key, k), f"key {k!r} is not a string")
-            _check(vt, v, _join(key, k), where, partial)
+            _check(entry or vt, v, _join(key, k), where, partial)
     elif origin in (list, List):
         if not isinstance(value, (list, tuple)):
             _fail(where, key, f"{_short(value)} is not {_describe(t)}")
@@ -909,6 +947,21 @@ def _check(t, value, key: str, where: str, partial: bool, union: tuple = (), bou
             _fail(where, key, f"{_short(value)} is out of range: must be {'>' if above else '>='} {lo}")
         if hi is not None and (value >= hi if below else value > hi):
             _fail(where, key, f"{_short(value)} is out of range: must be {'<' if below else '<='} {hi}")
+
+
+def _family_config(value, key: str, where: str):
+    """The ``Config`` dataclass of the method family ``value["family"]`` names."""
+    from party import methods
+    if not isinstance(value, Mapping):
+        _fail(where, key, f"{_short(value)} is not a mapping (a method: family and its keys)")
+    fam = value.get("family")
+    if _is_missing(fam) or fam is None:
+        raise ConfigError(f"{where}: missing key {_join(key, 'family')} (one of {', '.join(sorted(methods.families()))})",
+                          _join(key, "family"))
+    try:
+        return methods.family(str(fam)).Config
+    except KeyError as e:
+        raise ConfigError(f"{where}: {_join(key, 'family')}: {e.args[0]}", _join(key, "family")) from None
 
 
 def _yaml_scalar(s: str):
@@ -939,5 +992,12 @@ def validate(cfg, where: str = "config", *, partial: bool = False) -> DictConfig
     ``where`` and names the dotted key. ``partial=True`` allows absent keys and groups
     (hand-built test configs); unknown keys and wrong types still fail."""
     plain = _plain(cfg, where)
+    plugins = (plain.get("generator") or {}).get("plugins") if isinstance(plain.get("generator"), Mapping) else None
+    if isinstance(plugins, (list, tuple)) and plugins:
+        from party import methods
+        try:
+            methods.load_plugins([str(p) for p in plugins])
+        except (ImportError, ValueError) as e:
+            raise ConfigError(f"{where}: generator.plugins: {e}", "generator.plugins") from None
     _check(Config, plain, "", where, partial)
     return OmegaConf.create(plain)

@@ -319,3 +319,70 @@ def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.res
         raise ValueError(f"{ckpt}: the rolling checkpoint to resume from is truncated or damaged "
                          f"({bad}); delete it to start this training over, or set {key}=false")
     return ckpt
+
+
+# --------------------------------------------------------------------------- the recipe
+
+def start_training(seed: int, threads: int | None = None) -> None:
+    """What every training does first: the thread count (None: torch's default), then every
+    random stream seeded (``lightning.seed_everything``, workers too)."""
+    import lightning as L
+    if threads:
+        torch.set_num_threads(int(threads))
+    L.seed_everything(int(seed), workers=True, verbose=False)
+
+
+class TrainingSession:
+    """The bookkeeping of one resumable training around its ``trainer.fit``:
+
+        with TrainingSession(run, root, name, key, resume=t.resume, flag="generator.train.resume",
+                             tags={"party.method": name}) as s:
+            trainer = build_trainer(..., callbacks=[AtomicCheckpoint(s.ckpt, every)], default_root_dir=str(s.dir))
+            trainer.fit(lit, train, val, ckpt_path=s.resume_from, weights_only=True)
+            s.export(out_dir, write, ["model.pt", "metrics.json"], "generator", log_checkpoint=True)
+
+    Entering holds ``<root>/<name>/<key>/.lock`` (``hold_resume_dir``), finds the checkpoint to
+    resume from (``resume_checkpoint``), tags the run (``party.resume_key``, ``party.resumed``
+    and ``tags``) and links a resumed run to its earlier ones. ``export`` builds ``out_dir``
+    under a temp name (the rolling ``last.ckpt`` and what ``write(tmp)`` writes), swaps it in
+    whole and logs the files named to the run."""
+
+    def __init__(self, run, root, name: str, key: str, resume: bool, flag: str, tags: Mapping[str, Any] = ()):
+        self.run, self.key, self.flag, self.enabled = run, key, flag, bool(resume)
+        self.dir = resume_dir(root, name, key)
+        self.ckpt = self.dir / "last.ckpt"
+        self.tags = dict(tags)
+        self.resume_from: Path | None = None
+        self._hold = None
+
+    def __enter__(self) -> "TrainingSession":
+        from party import tracking
+        self._hold = hold_resume_dir(self.dir)
+        self._hold.__enter__()
+        try:
+            self.resume_from = resume_checkpoint(self.dir, self.enabled, self.flag)
+            self.run.set_tags({**self.tags, "party.resume_key": self.key,
+                               "party.resumed": str(self.resume_from is not None).lower()})
+            if self.resume_from is not None:
+                tracking.link_resumed(self.run, self.key)
+        except BaseException:
+            self._hold.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        return bool(self._hold.__exit__(*exc))
+
+    def export(self, out_dir, write, log_files: Iterable[str], artifact_path: str, log_checkpoint: bool) -> Path:
+        """``out_dir`` whole: ``last.ckpt`` plus what ``write(tmp)`` writes; then the files
+        ``log_files`` (and ``last.ckpt`` with ``log_checkpoint``) logged under ``artifact_path``."""
+        import shutil
+
+        from party.io import atomic_dir
+        with atomic_dir(out_dir) as tmp:
+            shutil.copy2(self.ckpt, tmp / "last.ckpt")
+            write(tmp)
+        out_dir = Path(out_dir)
+        for f in (*log_files, *(["last.ckpt"] if log_checkpoint else [])):
+            self.run.log_file(out_dir / f, artifact_path)
+        return out_dir

@@ -3,7 +3,7 @@ sees what generation sees, sampling filters."""
 import pytest
 import torch
 
-from party.generator import schedule as S
+from party.methods.party import schedule as S
 from party.generator.sampling import choose, filter_logits
 
 from .tiny_spec import D_TEXT, MODEL, VOCAB, WINDOWS, build

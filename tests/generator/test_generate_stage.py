@@ -45,7 +45,7 @@ def test_unknown_run_is_a_clear_error(tmp_path):
 def test_unknown_method_lists_the_methods():
     from omegaconf import OmegaConf
 
-    from party.generator.train import method_config
+    from party.methods import method_config
     g = OmegaConf.create({"methods": {"party": {"kind": "party"}, "holistic": {"kind": "holistic"}}})
     assert method_config(g, "party").kind == "party"
     with pytest.raises(KeyError, match=r"generator.method='nope' is not in generator.methods \(party, holistic\)"):
@@ -53,7 +53,7 @@ def test_unknown_method_lists_the_methods():
 
 
 def test_frame_lengths_refuse_what_no_stream_can_make():
-    from party.generator.generate import frame_lengths
+    from party.methods.tokens import frame_code_lengths as frame_lengths
     w = {"holistic": 8, "arms": 12, "legs": 12}
     out = frame_lengths([48, 100], w, 50)
     assert {s: t.tolist() for s, t in out.items()} == {"holistic": [6, 12], "arms": [4, 8], "legs": [4, 8]}

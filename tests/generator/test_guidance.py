@@ -79,7 +79,7 @@ def test_training_replaces_dropped_texts_by_the_null_condition():
     out = m.losses(batch)
     assert all(torch.isfinite(out[k]) for k in ("loss", "div", "aux"))
     kept = {k: v[keep] for k, v in batch.items() if k == "text_emb"}
-    from party.generator.ptg import PartTextGrounding, diversity_loss
+    from party.methods.party.ptg import PartTextGrounding, diversity_loss
     cp, _, c_prime = m.ptg(kept["text_emb"])
     assert torch.allclose(out["div"], diversity_loss(c_prime, kept["text_emb"], m.spec.tau), atol=1e-6)
     aux = PartTextGrounding.aux_loss(cp, {p: e[keep] for p, e in batch["part_emb"].items()},

@@ -4,7 +4,7 @@ import dataclasses
 import pytest
 import torch
 
-from party.generator import GeneratorSpec, PartyGenerator
+from party.methods.party.model import GeneratorSpec, PartyGenerator
 
 from .tiny_spec import LOSS, METHODS, MODEL, VOCAB, WINDOWS
 
@@ -49,13 +49,13 @@ def test_only_the_ptg_mlps_change_and_bad_values_fail():
 
 
 def test_models_saved_before_the_key_load(tmp_path):
-    from party.generator.train import load_generator, save_generator
+    from party.methods.party import PartyFamily
     m = _build("he")
-    save_generator(m, tmp_path / "model.pt", {"method": "x"})
+    PartyFamily.save(m, tmp_path / "model.pt", {"method": "x"})
     obj = torch.load(tmp_path / "model.pt", weights_only=False)
     del obj["spec"]["ptg_init"]
     torch.save(obj, tmp_path / "model.pt")
-    back, _ = load_generator(tmp_path / "model.pt")
+    back = PartyFamily.load(tmp_path / "model.pt").model
     assert back.spec.ptg_init == "normal"
     assert dataclasses.replace(back.spec, ptg_init="he") == m.spec
     sd = m.state_dict()

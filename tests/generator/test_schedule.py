@@ -3,7 +3,7 @@ monotonicity and caps for T = 1..5."""
 import pytest
 import torch
 
-from party.generator import schedule as S
+from party.methods.party import schedule as S
 
 
 def test_worked_example_w8_w12_T3():

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from party.generator import GeneratorSpec, PartyGenerator
+from party.methods.party.model import GeneratorSpec, PartyGenerator
 
 from .test_model import make_batch
 from .tiny_spec import D_TEXT, LOSS, METHODS, MODEL, VOCAB, WINDOWS
@@ -46,9 +46,9 @@ def test_none_ignores_statistics_and_stats_are_saved(tmp_path):
     none, std, caps = _pair()
     none.set_text_stats(caps)                       # a no-op for text_norm none
     assert torch.equal(none.text_mean, torch.zeros(D_TEXT))
-    from party.generator.train import load_generator, save_generator
-    save_generator(std, tmp_path / "model.pt", {"method": "x"})
-    back, _ = load_generator(tmp_path / "model.pt")
+    from party.methods.party import PartyFamily
+    PartyFamily.save(std, tmp_path / "model.pt", {"method": "x"})
+    back = PartyFamily.load(tmp_path / "model.pt").model
     assert torch.allclose(back.text_mean, caps.mean(0)) and torch.allclose(back.text_std, caps.std(0))
 
 

@@ -1,7 +1,7 @@
 """The tiny generator spec the generator tests share (vocabularies, windows, dims, methods)."""
 import torch
 
-from party.generator import GeneratorSpec, PartyGenerator
+from party.methods.party.model import GeneratorSpec, PartyGenerator
 
 VOCAB = {"holistic": 11, "arms": 7, "legs": 6}
 WINDOWS = {"holistic": 8, "arms": 12, "legs": 12}

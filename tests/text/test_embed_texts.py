@@ -98,7 +98,9 @@ def test_a_nan_in_the_cache_is_never_copied_into_the_store(tmp_path):
     stats2 = embed_stage.run(cfg)
     assert stats2["computed"] == 1
     store = EmbeddingStore.open(cfg.text.embeddings_dir)
-    assert np.allclose(store.get([CAPS[0][0]])[0], good, atol=1e-6)
+    # embedded again alone, not in the first run's batch: under bf16 autocast (text.precision auto on
+    # a CPU with AVX512-BF16) batch composition moves a vector by up to ~4e-4; fp32 by ~1e-7
+    assert np.allclose(store.get([CAPS[0][0]])[0], good, atol=1e-3)
     folder = tmp_path / "embeddings" / stats["encoder_id"]
     vecs = np.load(folder / "embeddings.npy")
     vecs[2, 5] = np.inf

@@ -73,7 +73,8 @@ def test_precision_bf16_matches_fp32_and_is_stored_apart():
 
 
 def test_minilm_tokens_pool_to_the_sentence_embedding(minilm):
-    enc, _ = minilm
+    from party.text.encoders import resolve_text_precision
+    enc, cfg = minilm
     texts = ["a person walks forward and then turns around.", "hi", "someone claps"]
     feats, lengths = enc.encode_tokens(texts)
     assert feats.shape[0] == 3 and feats.shape[2] == 384 and feats.shape[1] == int(lengths.max())
@@ -81,14 +82,18 @@ def test_minilm_tokens_pool_to_the_sentence_embedding(minilm):
     assert feats[1, 3:].abs().sum() == 0               # zero past the length
     pooled = F.normalize(feats.sum(1) / lengths[:, None], dim=-1)
     assert torch.allclose(pooled, enc.encode(texts), atol=1e-5)
-    # batching does not change results
+    # batching does not change results beyond the arithmetic's own noise: bf16 autocast
+    # (text.precision auto on a CPU with AVX512-BF16) gives a sequence padded to another batch's
+    # length kernels of other shapes: sentence embeddings ~1e-4 apart, token features up to ~1e-2
+    # (bf16 keeps 8 bits of mantissa); fp32 ~1e-7
+    tol = 1e-5 if resolve_text_precision(cfg) == "32-true" else 3e-2
     enc.batch_size, bs = 1, enc.batch_size
     try:
-        assert torch.allclose(enc.encode(texts), enc.encode(texts[:1] + texts[1:]), atol=1e-6)
+        assert torch.allclose(enc.encode(texts), enc.encode(texts[:1] + texts[1:]), atol=tol / 10)   # unit vectors
         f1, l1 = enc.encode_tokens(texts)
     finally:
         enc.batch_size = bs
-    assert torch.equal(l1, lengths) and torch.allclose(f1, feats, atol=1e-5)
+    assert torch.equal(l1, lengths) and torch.allclose(f1, feats, atol=tol)
 
 
 def _clip_cfg(**kw):

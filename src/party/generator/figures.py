@@ -121,12 +121,13 @@ class TrainingFigures(L.Callback):
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
             figs = {}
-            if model.hpf is not None:
+            parts = list(getattr(model, "parts", []))
+            if getattr(model, "hpf", None) is not None:          # models with Holistic-Part Fusion
                 maps = model.attention_maps(self.batch)
                 lens = {s: int(self.batch["lengths"][s][0]) + 1 for s in model.spec.vocab}
-                figs["hpf_attention"] = attention_figure(maps, lens, model.parts,
+                figs["hpf_attention"] = attention_figure(maps, lens, parts,
                                                          f"step {step}: {self.batch['caption'][0]}")
-            ratios = gate_ratios(val_results, model.parts)
+            ratios = gate_ratios(val_results, parts)
             if ratios:
                 figs["ptg_gates"] = gate_figure(ratios, f"PTG gate selection ratios, step {step}")
             for name, fig in figs.items():

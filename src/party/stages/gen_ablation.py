@@ -28,7 +28,7 @@ from omegaconf import OmegaConf
 from party.data.context import load_context
 from party.evaluation.loading import generation_columns, generation_scorer
 from party.generator.generate import generate_run
-from party.generator.train import train_generator
+from party.methods import family_of
 from party.stage import stage
 from party.sweep import load_sweep, run_grid
 
@@ -49,7 +49,7 @@ def run(cfg, run_) -> list[dict]:
     def point(pcfg, p: dict, prun) -> dict:
         home = out / "points" / p["label"]
         pcfg = OmegaConf.merge(pcfg, {"generator": {"out_dir": str(home)}})
-        m = train_generator(pcfg, method, home / method, prun)
+        m = family_of(pcfg.generator, method).train(pcfg, method, home / method, prun)
         gen = generate_run(pcfg, method, home / "generated", progress=pcfg.progress)
         row = {"params": int(m["params"]["total"]), "val_loss": round(m["final"]["val/loss"], 4),
                "steps": m["step"], "ait_ms": gen["ait_ms"], **score(home / "generated"), "status": "done"}

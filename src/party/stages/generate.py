@@ -1,6 +1,14 @@
 """``party generate``: text in, motion out.
 
-Two uses, one stage:
+For people, the plain command (``party generate --help``)::
+
+    party generate "a person waves" "someone kicks" [--frames 60] [--model URI] [--out DIR]
+
+writes, per text, features and joints (``.npy``), a GIF titled with the text and a BVH file,
+in an MLflow run of its own (``generate-text``, stage tag ``generate_text``). The Python form
+is ``party.load(model).generate(texts)`` (``party.api``).
+
+As a pipeline stage (Hydra overrides on params.yaml), two uses:
 
 - **for evaluation** (the DVC stage, ``generator.method=<m>``): every clip of
   ``generator.generate.split`` × ``repeats`` → ``<generator.generated_dir>/<m>/``
@@ -15,9 +23,9 @@ Two uses, one stage:
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
-from party.generator.generate import generate_run, generate_texts
 from party.stage import stage
 
 
@@ -51,20 +59,34 @@ def read_texts(gc) -> tuple[list[str], list[int | None] | None]:
 
 def resolve_run(cfg, spec: str | None, default: Path) -> Path:
     """A generator folder from ``generator.generate.run`` (a path or an MLflow artifact URI)."""
+    from party.api import fetch
     if not spec:
         return default
-    if "://" in str(spec) or str(spec).startswith(("runs:/", "models:/")):
-        import mlflow
+    try:
+        return fetch(str(spec), cfg)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"generator.generate.run={spec}: {str(e).split(': ', 1)[-1]}") from e
 
-        from party.tracking import tracking_uri
-        try:
-            return Path(mlflow.artifacts.download_artifacts(artifact_uri=str(spec), tracking_uri=tracking_uri(cfg)))
-        except Exception as e:  # noqa: BLE001 - name the URI whatever MLflow raised
-            raise FileNotFoundError(f"generator.generate.run={spec}: cannot fetch it from MLflow ({e})") from e
-    p = Path(spec)
-    if not p.exists():
-        raise FileNotFoundError(f"generator.generate.run={spec}: no such folder")
-    return p
+
+def write_texts(gen, texts: list[str], frames, out: str | Path, formats, seed: int | None = None,
+                progress: bool = False) -> list[dict]:
+    """Each text through ``gen`` (``party.api.Generator``) -> files under ``out`` (features, joints,
+    GIF titled with the text, BVH) and ``out/generated.json``."""
+    from party.generator.export import slug
+    from party.io import write_json
+    motions = gen.generate(texts, frames, seed=seed, progress=progress)
+    rows = []
+    for i, m in enumerate(motions):
+        paths = m.save(out, slug(m.text, i), formats)
+        rows.append({"text": m.text, "frames": m.frames, **{k: str(v) for k, v in paths.items()}})
+    write_json(Path(out) / "generated.json", rows)
+    return rows
+
+
+def report_texts(rows: list[dict]) -> None:
+    for o in rows:
+        print(f"generate: {o['text']!r} ({o['frames']} frames) -> " + ", ".join(
+            v for k, v in o.items() if k not in ("text", "frames")))
 
 
 @stage("generate", run_name=lambda cfg: f"generate-{cfg.generator.method}",
@@ -73,18 +95,101 @@ def run(cfg, run_) -> dict:
     g, gc = cfg.generator, cfg.generator.generate
     method = str(g.method)
     if gc.texts or gc.texts_file:
+        from party.api import load
+        from party.methods import method_config
         texts, frames = read_texts(gc)
         if not gc.run:
-            from party.generator.train import method_config
             method_config(g, method)
         src = resolve_run(cfg, gc.run, Path(g.out_dir) / method)
-        out = generate_texts(cfg, src, texts, frames, gc.out, list(gc.formats), cfg.progress)
-        for o in out:
-            print(f"generate: {o['text']!r} ({o['frames']} frames) -> " + ", ".join(
-                v for k, v in o.items() if k not in ("text", "frames")))
+        rows = write_texts(load(src, params=cfg), texts, frames, gc.out, list(gc.formats), progress=cfg.progress)
+        report_texts(rows)
         run_.log_file(gc.out, "generate")
-        return {"texts": len(out), "out": str(gc.out)}
+        return {"texts": len(rows), "out": str(gc.out)}
+    from party.generator.generate import generate_run
     summary = generate_run(cfg, method, Path(g.generated_dir) / method, cfg.progress)
     print(f"generate[{method}]: {summary}")
     run_.log_metrics({f"generate/{k}": v for k, v in summary.items() if isinstance(v, (int, float))})
     return summary
+
+
+# --------------------------------------------------------------------------- the plain command
+
+OPTIONS = ("--frames", "--model", "--out", "--formats", "--seed", "--params")
+_OVERRIDE = re.compile(r"^[+~]?[A-Za-z_][\w./@-]*=")
+
+
+def is_plain(argv: list[str]) -> bool:
+    """Whether ``party generate <argv>`` is the plain command (texts and --options) rather than
+    the Hydra stage (key=value overrides, Hydra flags)."""
+    if not argv:
+        return False
+    if argv in (["-h"], ["--help"]):
+        return True
+    return any(a.split("=", 1)[0] in OPTIONS for a in argv) or any(
+        not a.startswith("-") and not _OVERRIDE.match(a) for a in argv)
+
+
+def _parser():
+    import argparse
+    p = argparse.ArgumentParser(
+        prog="party generate", description="Text to motion: one motion per TEXT (features and joints as .npy, a "
+        "GIF titled with the text, a BVH file), tracked as an MLflow run named generate-text.",
+        epilog="Pipeline form (what `dvc repro` runs): party generate generator.method=<m> [key=value ...]; "
+        "Python: party.load(model).generate(texts). Sampling settings: generator.generate in params.yaml.")
+    p.add_argument("texts", nargs="+", metavar="TEXT", help="a text to animate (quote it: one argument per text)")
+    p.add_argument("--frames", metavar="N[,N...]", help="length in frames (rounded down to whole codes): one for every text, or one per text "
+                   "(comma-separated); default: the model ends each motion")
+    p.add_argument("--model", metavar="URI", help="a trained generator folder, runs:/<id>/generator or "
+                   "models:/<name>/<version> (default: <generator.out_dir>/<generator.method>)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: generator.generate.out)")
+    p.add_argument("--formats", metavar="F[,F...]", help="of npy, gif, mp4, bvh (default: generator.generate.formats)")
+    p.add_argument("--seed", type=int, help="sampling seed (default: generator.generate.seed)")
+    p.add_argument("--params", metavar="FILE", help="the project's params.yaml (default: $PARTY_PARAMS or ./params.yaml)")
+    return p
+
+
+def _frames(spec: str | None, n: int) -> list[int] | None:
+    if spec is None:
+        return None
+    parts = [x.strip() for x in str(spec).split(",")]
+    if not all(x.lstrip("-").isdigit() for x in parts):
+        raise ValueError(f"--frames {spec}: not a whole number of frames")
+    vals = [int(x) for x in parts]
+    if len(vals) == 1:
+        return vals * n
+    if len(vals) != n:
+        raise ValueError(f"--frames {spec}: {len(vals)} lengths for {n} texts")
+    return vals
+
+
+def plain(argv: list[str]) -> int:
+    """``party generate TEXT ... [--options]``; one line naming the problem on bad input (exit 2)."""
+    import sys
+
+    from party.config import load_params
+    a = _parser().parse_args(argv)
+    try:
+        cfg = load_params(a.params)
+        gc = cfg.generator.generate
+        texts = [str(t) for t in a.texts]
+        frames = _frames(a.frames, len(texts))
+        formats = [f.strip() for f in a.formats.split(",")] if a.formats else list(gc.formats)
+        out = a.out or gc.out
+        model = a.model
+
+        @stage("generate_text", run_name="generate-text",
+               tags={"party.model": str(model or f"{cfg.generator.out_dir}/{cfg.generator.method}")})
+        def body(cfg, run_) -> dict:
+            from party.api import load
+            rows = write_texts(load(model, params=cfg), texts, frames, out, formats, seed=a.seed,
+                               progress=bool(cfg.progress))
+            report_texts(rows)
+            run_.log_file(out, "generate")
+            return {"texts": len(rows), "out": str(out)}
+
+        body(cfg)
+    except (ValueError, FileNotFoundError, KeyError, ImportError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        print(f"party generate: {msg}", file=sys.stderr)
+        return 2
+    return 0

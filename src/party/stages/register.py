@@ -4,8 +4,8 @@ Packs ``<generator.out_dir>/<method>`` with the tokenizers that decode it, the d
 normalisation statistics and part tables, and the text encoder's config and id
 (``party.generator.package``), logs the package as the run's ``package/`` artifact and
 registers it as a new version of ``generator.registry.name``. Then, anywhere that can reach
-the MLflow store: ``party generate generator.generate.run=models:/<name>/<version>
-generator.generate.texts='[a person waves]'``. Needs tracking on (the registry is MLflow's).
+the MLflow store: ``party generate "a person waves" --model models:/<name>/<version>`` or
+``party.load("models:/<name>/<version>")``. Needs tracking on (the registry is MLflow's).
 """
 from __future__ import annotations
 
@@ -34,5 +34,5 @@ def run(cfg, run_) -> dict:
     uri = f"models:/{name}/{version}"
     run_.set_tags({"party.model_uri": uri})
     print(f"register: {uri} ({method}, tokenizers {', '.join(info['tokenizers'])}, encoder {info['encoder_id']}); "
-          f"generate with `party generate generator.generate.run={uri} generator.generate.texts='[...]'`")
+          f"generate with `party generate \"a text\" --model {uri}`")
     return {"model_uri": uri, "version": int(version), **{k: info[k] for k in ("method", "encoder_id", "params")}}

@@ -16,7 +16,6 @@ import logging
 import time
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -32,7 +31,7 @@ from party.evaluation.metrics import matching_score, r_precision
 from party.evaluation.text_input import ContextualTokens, WordVectorizer, build_word_table, vocabulary
 from party.io import atomic_dir, write_json, write_text
 from party.stage import stage
-from party.training import build_trainer, count_params
+from party.training import build_trainer, count_params, start_training
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +104,7 @@ def run(cfg: DictConfig, run_) -> dict:
     if stream not in streams:
         raise ValueError(f"evaluator.stream must be one of {streams} (dataset.parts.streams), got {stream!r}")
     seed = cfg.seed
-    L.seed_everything(seed, workers=True, verbose=False)
+    start_training(seed)
     ctx = load_context(cfg)
     channels = stream_channels(ctx.layout, stream, ctx.feat_dim, ec.drop_contacts)
     feat, text_in, extra = build_featurizer(cfg, ctx.index, ec.text_input, ec.max_text_len)

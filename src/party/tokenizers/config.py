@@ -35,15 +35,11 @@ def crop_length(crop: int, window: int) -> int:
     return max(window, crop // window * window)
 
 
-# keys that do not change what a step computes: a run may resume across changes to them
-_RESUME_IGNORES = {"max_steps", "val_every", "ckpt_every", "render_samples", "log_checkpoint",
-                   "num_workers", "threads", "resume", "log_every"}
-
-
 def resume_key(scfg: dict, extra: Mapping[str, Any]) -> str:
     """Short hash of everything that makes two training runs the same run."""
+    from party.schema import VQTrain, step_keys
     from party.training import config_key
 
-    train = {k: v for k, v in scfg["train"].items() if k not in _RESUME_IGNORES}
+    train = step_keys(VQTrain, scfg["train"])     # the keys marked _off_step do not change a step
     return config_key({"model": scfg["model"], "loss": scfg["loss"], "optim": scfg["optim"], "train": train},
                       extra)

@@ -10,29 +10,29 @@ Resumable (``party.training``): checkpoints go every ``train.ckpt_every`` iterat
 ``<vqvae.resume_dir>/<stream>/<config hash>/last.ckpt``, which is not a DVC output, so
 a killed run, rerun with the same settings, continues from its last checkpoint; a
 finished run rerun only re-exports. The hash covers everything that changes what a
-step computes and the data's identity, not ``max_steps``: raising ``max_steps``
-continues a finished run.
+step computes (the keys of ``vqvae.train`` not marked ``_off_step`` in ``party.schema``) and
+the data's identity, not ``max_steps``: raising ``max_steps`` continues a finished run. The
+run's bookkeeping (seed, lock, resume, export, logging) is ``party.training``'s recipe,
+shared with the generators.
 """
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from pathlib import Path
 
-import lightning as L
 import torch
 
 from party import tracking
-from party.io import atomic_dir, write_json
+from party.io import write_json
 from party.tokenizers import diagnostics
 from party.tokenizers.config import crop_length, resume_key, stream_config
 from party.data.context import load_stream_data
 from party.tokenizers.data import BucketDataset, bucket_loader, eval_sequences, train_loader
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.vqvae import Tokenizer, build_tokenizer, save_tokenizer
-from party.training import (AtomicCheckpoint, build_trainer, count_params, data_identity, precision_identity,
-                            hold_resume_dir, resume_checkpoint, resume_dir, trainer_kwargs)
+from party.training import (AtomicCheckpoint, TrainingSession, build_trainer, count_params, data_identity,
+                            precision_identity, start_training, trainer_kwargs)
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +60,8 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     run = run if run is not None else tracking.NullRun(f"train_vqvae-{stream}")
     scfg = stream_config(cfg.vqvae, stream)
     t, mcfg = scfg["train"], scfg["model"]
-    if t["threads"]:
-        torch.set_num_threads(t["threads"])
     seed = cfg.seed
-    L.seed_everything(seed, workers=True, verbose=False)
+    start_training(seed, t["threads"])
     data = load_stream_data(cfg, stream)
     tok = build_tokenizer(data.in_dim, mcfg, *data.stats(), data.meta())
     model = tok.model
@@ -79,24 +77,19 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     precision = trainer_kwargs(cfg, cfg.vqvae.trainer)["precision"]
     key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim, **precision_identity(precision),
                             **data_identity(data.index.path, data.index.root)})
-    rdir = resume_dir(cfg.vqvae.resume_dir, stream, key)
-    with hold_resume_dir(rdir):     # no second run with this key in rdir until ours is copied out
-        ckpt = rdir / "last.ckpt"
-        resume = resume_checkpoint(rdir, t["resume"], "vqvae.train.resume")
+    with TrainingSession(run, cfg.vqvae.resume_dir, stream, key, t["resume"], "vqvae.train.resume",
+                         tags={"party.stream": stream}) as session:
         n_params = count_params(model)
-        run.set_tags({"party.stream": stream, "party.resume_key": key,
-                      "party.resumed": str(resume is not None).lower()})
-        if resume is not None:
-            tracking.link_resumed(run, key)
         t0 = time.time()
         run.log_params({"n_params": n_params, "train_crop_frames": crop, "precision": precision,
                         "train_clips": len(loader.dataset), "val_clips": len(val_seqs)})
         trainer = build_trainer(cfg, max_steps=t["max_steps"], logger=tracking.lightning_logger(cfg, run),
-                                callbacks=[AtomicCheckpoint(ckpt, t["ckpt_every"]), *(callbacks or [])],
+                                callbacks=[AtomicCheckpoint(session.ckpt, t["ckpt_every"]), *(callbacks or [])],
                                 section=cfg.vqvae.trainer,
                                 val_check_interval=t["val_every"], check_val_every_n_epoch=None,
-                                default_root_dir=str(rdir),
+                                default_root_dir=str(session.dir),
                                 gradient_clip_val=float(scfg["optim"]["grad_clip"] or 0) or None)
+        resume = session.resume_from
         if resume:
             log.info("resuming %s from %s", stream, resume)
         # the resume checkpoint holds tensors and plain containers only: loaded without unpickling code
@@ -117,18 +110,14 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
         run.set_tags({"party.tokenizer_status": diag["status"]})
         if trainer.is_global_zero:
             model.eval()
-            with atomic_dir(out_dir) as tmp:
-                shutil.copy2(ckpt, tmp / "last.ckpt")
+
+            def write(tmp: Path) -> None:
                 save_tokenizer(tok, tmp / "model.pt")
-                write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg,
-                                                 "meta": tok.meta})
+                write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg, "meta": tok.meta})
                 write_json(tmp / "metrics.json", metrics)
+            session.export(out_dir, write, ["model.pt", "metrics.json", "config.json"], "tokenizer",
+                           t["log_checkpoint"])
         out_dir = Path(out_dir)
-        run.log_file(out_dir / "model.pt", "tokenizer")
-        run.log_file(out_dir / "metrics.json", "tokenizer")
-        run.log_file(out_dir / "config.json", "tokenizer")
-        if t["log_checkpoint"]:
-            run.log_file(out_dir / "last.ckpt", "tokenizer")
         n_vid = int(t["render_samples"] or 0)
         if n_vid and run.info.run_id:
             clips = data.index.clips(ev.split)[:n_vid]

@@ -1,0 +1,93 @@
+"""The ParTY family: ParTY (``kind: party``) and its holistic-only (``holistic``) and part-wise
+(``partwise``) baselines, one model class (``model.PartyGenerator``) with the switches of
+``config.PartyConfig``; trained by the token recipe (``party.generator.train``).
+
+    generator:
+      methods:
+        party: {family: party, kind: party, pg: true, ptg: true, hpf: true, aux: true}
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from party.methods import register
+from party.methods.base import MethodFamily
+from party.methods.party.config import PartyConfig
+from party.methods.tokens import TokenMethod
+
+FORMAT = "party.generator/1"
+
+
+class PartyMethod(TokenMethod):
+    """A trained ParTY-family generator, ready to sample."""
+
+    def index_fields(self, method_cfg) -> dict:
+        spec = self.model.spec
+        out = {"kind": spec.kind}
+        if spec.kind == "party":                     # the ablation switches of Tab. 5
+            out["switches"] = {k: bool(getattr(spec, k)) for k in ("pg", "ptg", "hpf")}
+        return out
+
+
+@register
+class PartyFamily(MethodFamily):
+    name = "party"
+    Config = PartyConfig
+    consumes = ("tokens",)
+
+    @classmethod
+    def build_model(cls, cfg, method: str, ds):
+        from party.config import plain
+        from party.methods import method_config
+        from party.methods.party.model import GeneratorSpec, PartyGenerator
+        g = cfg.generator
+        spec = GeneratorSpec.from_config(plain(g.model), plain(g.loss), plain(method_config(g, method)),
+                                         vocab=ds.codebook_sizes, windows=ds.windows, text_dim=ds.dim)
+        model = PartyGenerator(spec)
+        model.set_text_stats(ds.caption_embeddings)
+        return model
+
+    @classmethod
+    def key_config(cls, cfg, method: str) -> dict:
+        from party.config import plain
+        from party.methods import method_config
+        g = cfg.generator
+        return {"model": plain(g.model), "loss": plain(g.loss),
+                "method": {k: v for k, v in plain(method_config(g, method)).items() if k != "family"}}
+
+    @classmethod
+    def describe(cls, cfg, method: str) -> dict:
+        from party.methods import method_config
+        return {"kind": str(method_config(cfg.generator, method).kind)}
+
+    @classmethod
+    def train(cls, cfg, method: str, out_dir, run, callbacks=None) -> dict:
+        from party.generator.train import train_token_generator
+        return train_token_generator(cfg, method, out_dir, run, cls, callbacks)
+
+    @classmethod
+    def save(cls, model, path: Path, meta: dict) -> None:
+        from party.methods.store import save_weights
+        save_weights(path, FORMAT, dataclasses.asdict(model.spec), meta, model.state_dict())
+
+    @classmethod
+    def wrap(cls, model, meta: dict) -> PartyMethod:
+        return PartyMethod(model, meta, model.spec.streams, model.spec.max_tokens)
+
+    @classmethod
+    def load(cls, folder, map_location: str = "cpu") -> PartyMethod:
+        from party.methods.party.model import GeneratorSpec, PartyGenerator
+        from party.methods.store import load_weights
+        obj = load_weights(folder, FORMAT, map_location)
+        spec = dict(obj["spec"])
+        spec.setdefault("cond_drop", 0.0)    # models saved before the key existed never saw the null condition
+        spec.setdefault("ptg_init", "normal")  # ... and were built with N(0, 0.02) PTG MLPs (only matters at build)
+        model = PartyGenerator(GeneratorSpec(**spec))
+        model.load_state_dict(obj["state_dict"])
+        return cls.wrap(model.eval(), obj["meta"])
+
+    @classmethod
+    def recognizes(cls, folder) -> bool:
+        from party.methods.store import weights_format
+        return weights_format(folder) == FORMAT
