@@ -198,6 +198,8 @@ def test_registered_generator_generates_with_nothing_else(pipeline, tmp_path):
     other.mkdir()
     shutil.copy2(work / "params.yaml", other / "params.yaml")
     shutil.copytree(work / "mlruns", other / "mlruns")
+    (other / STUBS).parent.mkdir(parents=True)           # the plug-in params.yaml names goes with it
+    shutil.copy2(work / STUBS, other / STUBS)
     _sh([str(BIN / "party"), "generate", f"generator.generate.run={uri}",
          "generator.generate.texts=[a person waves with the left hand]", "generator.generate.frames=[48]",
          f"generator.generate.out={other / 'out'}"], other, env | {"DVC_ROOT": ""})

@@ -111,11 +111,18 @@ def fetch(source: str, cfg) -> Path:
     if not s:
         raise ValueError("no model given (a folder, runs:/<id>/generator or models:/<name>/<version>)")
     if "://" in s or s.startswith(("runs:/", "models:/")):
+        import os
+
         import mlflow
 
         from party.tracking import tracking_uri
+        uri = tracking_uri(cfg)
+        before = os.environ.get("MLFLOW_REGISTRY_URI")
+        mlflow.set_registry_uri(uri)              # models:/ resolves in the registry, not the tracking URI
+        if before is None:                        # ... without exporting it to child processes
+            os.environ.pop("MLFLOW_REGISTRY_URI", None)
         try:
-            return Path(mlflow.artifacts.download_artifacts(artifact_uri=s, tracking_uri=tracking_uri(cfg)))
+            return Path(mlflow.artifacts.download_artifacts(artifact_uri=s, tracking_uri=uri))
         except Exception as e:  # noqa: BLE001 - name the URI whatever MLflow raised
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise FileNotFoundError(f"model {s}: cannot fetch it from the MLflow store ({first})") from e

@@ -32,6 +32,7 @@ import traceback
 from typing import Any, Callable, Mapping
 
 from party import tracking
+from party.lifecycle import terminate_on_sigterm
 from party.schema import validate
 
 Body = Callable[[Any, Any], Any]
@@ -62,7 +63,7 @@ def stage(name: str, run_name: str | Callable | None = None,
             seed_all(int(cfg.seed))
             rname = _value(run_name, cfg) or name
             t0 = time.time()
-            with tracking.terminate_on_sigterm(), \
+            with terminate_on_sigterm(), \
                     tracking.start_run(cfg, name, run_name=rname, tags=_value(tags, cfg)) as run_:
                 try:
                     out = body(cfg, run_)

@@ -1,23 +1,21 @@
-"""Text → codes → motion: decoding a trained generator's codes and writing generated runs.
+"""Text -> motion for the pipeline: generated runs of any method family.
 
-- ``Decoder``: the stream tokenizers of a generator. ``party`` / ``holistic`` methods
-  decode the holistic codes with the holistic tokenizer (the whole feature vector);
-  ``partwise`` decodes Arms and Legs with their own tokenizers and composes them through
-  the part layout's inverse (``PartLayout.merge``; the root channels both carry are
-  averaged, the backbone channels neither carries come from the dataset mean pose).
 - ``generate_run``: the ``data/generated/<method>/`` folder ``evaluate`` reads (see
   ``party.evaluation.sources``): one sample per clip of ``generator.generate.split`` and
-  repeat, its first caption, raw features, the method's switches and efficiency figures
-  (parameters, average inference time per sample at batch 1).
-- ``generate_texts``: what ``party generate generate.texts=[...]`` writes for people (features,
-  joints, a stick-figure GIF titled with the text and a BVH per text).
+  repeat, its first caption, raw features from the method (``TrainedMethod.sample``), the
+  method's own index fields (ParTY's switches) and efficiency figures (parameters, average
+  inference time per sample at batch 1).
+- ``generate_batches``: every text through a bound ``TrainedMethod``, in seeded batches.
+- ``embed_texts`` / ``encode_texts``: texts to the embeddings a method was trained on.
+
+People's text-to-motion is ``party.api`` (``party.load``) and ``party generate "text"``.
 """
 from __future__ import annotations
 
 import logging
 import time
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 import torch

@@ -89,12 +89,16 @@ def report_texts(rows: list[dict]) -> None:
             v for k, v in o.items() if k not in ("text", "frames")))
 
 
-@stage("generate", run_name=lambda cfg: f"generate-{cfg.generator.method}",
-       tags=lambda cfg: {"party.method": cfg.generator.method})
+def _for_people(cfg) -> bool:
+    return bool(cfg.generator.generate.texts or cfg.generator.generate.texts_file)
+
+
+@stage("generate", run_name=lambda cfg: "generate-text" if _for_people(cfg) else f"generate-{cfg.generator.method}",
+       tags=lambda cfg: {"party.method": cfg.generator.method, "party.for_people": str(_for_people(cfg)).lower()})
 def run(cfg, run_) -> dict:
     g, gc = cfg.generator, cfg.generator.generate
     method = str(g.method)
-    if gc.texts or gc.texts_file:
+    if _for_people(cfg):
         from party.api import load
         from party.methods import method_config
         texts, frames = read_texts(gc)

@@ -1,0 +1,141 @@
+"""A stage's MLflow run: ``start_run`` (tags, config, status on every way out), the git state
+it records, and the link of a resumed training to its earlier runs."""
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+from typing import Any, Iterator, Mapping
+
+from party.lifecycle import _SIGNALLED, close_orphans, process_key
+from party.tracking.log import NullRun, _config_yaml, _RunMethods, flatten_config, is_rank_zero
+from party.tracking.store import _experiment_id, _set_tracking_uri, _tcfg, tracking_uri
+
+
+# files every documented workflow changes (generated or written by the pipeline itself):
+# they do not make a run's code or config differ from its commit
+GENERATED = ("params.yaml", "dvc.lock", "metrics/", "conf/local/")
+
+
+def _git_state() -> dict[str, str]:
+    """``party.git_commit``; ``party.git_changed``: the tracked files that differ from it;
+    ``party.git_dirty``: whether any of those is more than a generated file (``GENERATED``)."""
+    def git(*args: str) -> str | None:
+        try:
+            r = subprocess.run(["git", *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return r.stdout.rstrip("\n") if r.returncode == 0 else None   # porcelain lines start with a space
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no")
+    if status is None:
+        return {"party.git_commit": commit or "unknown", "party.git_dirty": "unknown"}
+    changed = sorted(line[3:].split(" -> ")[-1] for line in status.splitlines() if line.strip())
+    source = [f for f in changed if not f.startswith(GENERATED)]
+    listed = ", ".join(changed)
+    return {"party.git_commit": commit or "unknown", "party.git_dirty": str(bool(source)).lower(),
+            "party.git_changed": listed if len(listed) <= 4000 else listed[:3997] + "..."}
+
+
+def link_resumed(run, resume_key: str) -> str | None:
+    """A training resumed from a rolling checkpoint continues the runs of the same
+    ``party.resume_key``: tag ``party.resumed_from`` (the latest of them) and, unless the run
+    already has a parent (a sweep point), ``mlflow.parentRunId`` = the first, so the UI shows
+    one training as one run with its continuations beneath. Returns the run resumed from."""
+    run_id = getattr(run.info, "run_id", None)
+    if not run_id:
+        return None
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    this = client.get_run(run_id)
+    earlier = [r for r in client.search_runs(
+        [this.info.experiment_id], filter_string=f"tags.`party.resume_key` = '{resume_key}'",
+        order_by=["attributes.start_time ASC"], max_results=1000) if r.info.run_id != run_id
+        and r.info.start_time <= this.info.start_time]
+    if not earlier:
+        return None
+    root = earlier[0].data.tags.get("party.resume_root", earlier[0].info.run_id)
+    tags = {"party.resumed_from": earlier[-1].info.run_id, "party.resume_root": root}
+    if "mlflow.parentRunId" not in this.data.tags:
+        tags["mlflow.parentRunId"] = root
+    run.set_tags(tags)
+    return earlier[-1].info.run_id
+
+
+@contextlib.contextmanager
+def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, Any] | None = None,
+              parent_run_id: str | None = None, nested: bool = False) -> Iterator[Any]:
+    """Open the stage's MLflow run; yields ``mlflow.ActiveRun`` (or a ``NullRun``).
+
+    Tags: ``party.stage``, ``party.git_commit``, ``party.git_dirty``, ``party.git_changed``, the
+    DVC experiment name/baseline when run by ``dvc exp`` (the run is then named
+    ``<name>@<dvc exp>``), ``mlflow.parentRunId`` for nested runs (an
+    active run with ``nested=True``, or ``parent_run_id`` / ``tracking.parent_run_id``).
+    Logs the flattened resolved config as params and the full config as ``config.yaml``.
+    The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM) when the body raises.
+    First marks KILLED the runs left RUNNING by a dead process of this host (``close_orphans``).
+    """
+    t = _tcfg(cfg)
+    name = run_name or stage
+    if not t["enabled"] or not is_rank_zero():
+        yield NullRun(name)
+        return
+
+    import mlflow
+
+    uri = tracking_uri(cfg)
+    _set_tracking_uri(mlflow, uri)
+    exp_id = _experiment_id(t["experiment"], uri)
+    mlflow.set_experiment(experiment_id=exp_id)
+
+    import socket
+
+    close_orphans(mlflow.MlflowClient(uri), stage)
+    all_tags = {"party.stage": stage, **_git_state(), "party.host": socket.gethostname(),
+                "party.process": process_key(os.getpid())}
+    for env, tag in (("DVC_EXP_NAME", "party.dvc_exp_name"),
+                     ("DVC_EXP_BASELINE_REV", "party.dvc_baseline_rev")):
+        if os.environ.get(env):
+            all_tags[tag] = os.environ[env]
+    all_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    active = mlflow.active_run()
+    # the configured parent (a sweep's run) applies to top-level runs of this process only
+    parent = parent_run_id or (t["parent_run_id"] if active is None else None) or None
+    if parent and active is not None and active.info.run_id != parent:
+        raise RuntimeError(f"start_run({stage!r}): parent_run_id {parent} is not the active "
+                           f"run {active.info.run_id}")
+    if os.environ.get("DVC_EXP_NAME"):      # which DVC experiment, visible in the runs list
+        name = f"{name}@{os.environ['DVC_EXP_NAME']}"
+    run = mlflow.start_run(experiment_id=exp_id, run_name=name, tags=all_tags,
+                           parent_run_id=parent, nested=nested or active is not None and bool(parent),
+                           log_system_metrics=bool(t["log_system_metrics"]))
+    run = _party_run_cls()(run)
+    try:
+        run.log_params(flatten_config(cfg))
+        run.log_text(_config_yaml(cfg), "config.yaml")
+        yield run
+    except BaseException as e:
+        killed = isinstance(e, KeyboardInterrupt) or bool(_SIGNALLED)
+        _SIGNALLED.clear()
+        mlflow.end_run("KILLED" if killed else "FAILED")
+        raise
+    else:
+        mlflow.end_run("FINISHED")
+
+
+_PARTY_RUN_CLS = None
+
+
+def _party_run_cls():
+    """``mlflow.ActiveRun`` plus the logging methods (built lazily: mlflow imports slowly)."""
+    global _PARTY_RUN_CLS
+    if _PARTY_RUN_CLS is None:
+        from mlflow import ActiveRun
+
+        class PartyRun(ActiveRun, _RunMethods):
+            active = True
+
+        _PARTY_RUN_CLS = PartyRun
+    return _PARTY_RUN_CLS

@@ -1,0 +1,163 @@
+"""The MLflow store: where it is (``tracking_uri``), its artifact root, the experiment of the
+project (created once, under a lock shared by processes), and a copied store pointed back at
+its own artifacts (``relocate_store``)."""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from pathlib import Path
+from typing import Mapping
+
+from omegaconf import DictConfig
+
+log = logging.getLogger("party.tracking")
+
+
+def _tcfg(cfg: DictConfig | Mapping) -> Mapping:
+    """The ``tracking`` group (conf/tracking/default.yaml holds every key and its value)."""
+    t = cfg.get("tracking") if cfg is not None else None
+    if t is None:
+        raise KeyError("config has no `tracking` group (conf/tracking/default.yaml)")
+    return t
+
+
+def project_root() -> Path:
+    """``$DVC_ROOT`` (the parent repo, also for queued DVC experiments) or the cwd."""
+    return Path(os.environ.get("DVC_ROOT") or os.getcwd()).resolve()
+
+
+def tracking_dir(cfg) -> Path:
+    d = Path(_tcfg(cfg)["dir"])
+    return d if d.is_absolute() else project_root() / d
+
+
+def _set_tracking_uri(mlflow, uri: str) -> None:
+    """Point this process's MLflow at ``uri`` without exporting it.
+
+    ``mlflow.set_tracking_uri`` also writes ``$MLFLOW_TRACKING_URI`` (for subprocesses),
+    which ``tracking_uri`` would then take as the user's choice: a later stage in this
+    process, or any child process, would log into the first store. Keep the
+    environment as the user left it.
+    """
+    before = os.environ.get("MLFLOW_TRACKING_URI")
+    mlflow.set_tracking_uri(uri)
+    if before is None:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+    else:
+        os.environ["MLFLOW_TRACKING_URI"] = before
+
+
+def tracking_uri(cfg) -> str:
+    """``$MLFLOW_TRACKING_URI`` > ``tracking.uri`` > ``sqlite:///<abs dir>/mlflow.db``."""
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    if env:
+        return env
+    uri = _tcfg(cfg)["uri"]
+    if uri:
+        return str(uri)
+    return f"sqlite:///{tracking_dir(cfg) / 'mlflow.db'}"
+
+
+def _sqlite_path(uri: str) -> Path | None:
+    if not uri.startswith("sqlite:///"):
+        return None
+    p = uri[len("sqlite:///"):].split("?", 1)[0]
+    return Path(p if p.startswith("/") else os.path.join(os.getcwd(), p))
+
+
+def artifact_location(uri: str) -> str | None:
+    """Artifact root for experiments we create: ``<db dir>/artifacts`` for SQLite stores."""
+    db = _sqlite_path(uri)
+    return None if db is None else (db.parent / "artifacts").resolve().as_uri()
+
+
+@contextlib.contextmanager
+def _store_lock(uri: str):
+    """Serialise store creation/migration and experiment creation across processes."""
+    db = _sqlite_path(uri)
+    if db is None:
+        yield
+        return
+    from filelock import FileLock
+
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(db.parent / ".mlflow.lock"), timeout=300):
+        yield
+
+
+_LOCATION_COLUMNS = (("experiments", "artifact_location", "experiment_id"), ("runs", "artifact_uri", "run_uuid"),
+                     ("logged_models", "artifact_location", "model_id"),
+                     ("model_versions", "source", "rowid"), ("model_versions", "storage_location", "rowid"))
+
+
+def relocate_store(uri: str) -> int:
+    """Point a moved or copied SQLite store at its own artifacts: MLflow records absolute
+    artifact locations (``file:///old/clone/mlruns/artifacts/...``), so a clone moved elsewhere
+    would read from and write into the original's folder. Every location under the old store
+    folder is rewritten to this store's folder (``<db dir>``); locations elsewhere (a server's,
+    an artifact root configured on purpose) are left alone. Returns the rows changed."""
+    import sqlite3
+
+    db = _sqlite_path(uri)
+    if db is None or not db.exists():
+        return 0
+    new_root = db.parent.resolve()
+    con = sqlite3.connect(db)
+    try:
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if "experiments" not in tables:
+            return 0
+        old_roots = set()
+        for (loc,) in con.execute("SELECT artifact_location FROM experiments"):
+            path = Path(loc[len("file://"):] if loc.startswith("file://") else loc)
+            if loc.startswith(("file://", "/")) and path.parent != new_root and \
+                    (path.name == "artifacts" or path.name.isdigit()):
+                old_roots.add(str(path.parent))
+        changed = 0
+        with con:
+            for old in sorted(old_roots, key=len, reverse=True):
+                for table, col, key in _LOCATION_COLUMNS:
+                    if table not in tables:
+                        continue
+                    rows = con.execute(f"SELECT {key}, {col} FROM {table}").fetchall()
+                    for k, value in rows:
+                        for prefix in (f"file://{old}/", f"{old}/"):
+                            if isinstance(value, str) and value.startswith(prefix):
+                                new = prefix.replace(old, str(new_root), 1) + value[len(prefix):]
+                                con.execute(f"UPDATE {table} SET {col}=? WHERE {key}=?", (new, k))
+                                changed += 1
+                                break
+        if changed:
+            log.warning("%s: moved from %s; %d artifact locations now point under %s",
+                        db, ", ".join(sorted(old_roots)), changed, new_root)
+        return changed
+    finally:
+        con.close()
+
+
+# the MLflow UI opens an experiment of this kind in its model-training view ("Training runs"),
+# not the GenAI one, and does not ask which kind it is
+EXPERIMENT_KIND, MODEL_TRAINING = "mlflow.experimentKind", "custom_model_development"
+
+
+def _experiment_id(name: str, uri: str) -> str:
+    import mlflow
+
+    with _store_lock(uri):  # the client creates (and migrates) a new store eagerly
+        relocate_store(uri)
+        client = mlflow.MlflowClient(uri)
+        exp = client.get_experiment_by_name(name)
+        if exp is None:
+            return client.create_experiment(name, artifact_location=artifact_location(uri),
+                                            tags={EXPERIMENT_KIND: MODEL_TRAINING})
+        if EXPERIMENT_KIND not in exp.tags:
+            client.set_experiment_tag(exp.experiment_id, EXPERIMENT_KIND, MODEL_TRAINING)
+    if exp.lifecycle_stage == "deleted":
+        raise RuntimeError(f"MLflow experiment {name!r} in {uri} is deleted; restore it "
+                           f"(`mlflow experiments restore`) or set tracking.experiment")
+    want = artifact_location(uri)
+    if want and exp.artifact_location.rstrip("/") != want.rstrip("/"):
+        log.warning("experiment %r stores artifacts in %s, not %s", name,
+                    exp.artifact_location, want)
+    return exp.experiment_id
