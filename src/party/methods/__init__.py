@@ -18,7 +18,7 @@ registering its families on import): ``party params generator.plugins='[my_lab.m
 from __future__ import annotations
 
 import importlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:                          # pragma: no cover
@@ -111,7 +111,7 @@ def family_of(g, method: str) -> type["MethodFamily"]:
     """The family of ``generator.methods.<method>`` (plug-ins of ``generator.plugins`` loaded)."""
     load_plugins(g.get("plugins") or ())
     entry = method_config(g, method)
-    fam = entry.get("family") if isinstance(entry, Mapping) or hasattr(entry, "get") else None
+    fam = entry.get("family") if hasattr(entry, "get") else None         # a mapping (dict or DictConfig)
     if not fam:
         raise KeyError(f"generator.methods.{method}: no family key (one of {', '.join(sorted(families()))})")
     return family(str(fam))
