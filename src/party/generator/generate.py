@@ -12,7 +12,6 @@ People's text-to-motion is ``party.api`` (``party.load``) and ``party generate "
 """
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 from typing import Mapping
@@ -22,8 +21,6 @@ import torch
 from tqdm import tqdm
 
 from party.io import atomic_dir, write_json
-
-log = logging.getLogger(__name__)
 
 
 def generate_batches(method, text_emb: np.ndarray, lengths: Mapping[str, torch.Tensor] | None, gcfg,
