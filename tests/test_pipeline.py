@@ -19,6 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf/experiment").glob("*.yaml"))
 STUBS = "tests/methods/stub_families.py"
+# planted through oc.env in a URL and as a bare value; it must reach no file of the run
+SECRET = "e2e-s3cr3t-5f0c9a"
 
 
 def test_there_are_experiments_to_run():
@@ -42,7 +44,7 @@ def pipeline(request, tmp_path_factory):
             (work / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, work / rel)
     env = os.environ | {"PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg",
-                        "PARTY_NO_RENDER": "", "PYTHONUNBUFFERED": "1"}
+                        "PARTY_NO_RENDER": "", "PYTHONUNBUFFERED": "1", "PARTY_E2E_SECRET": SECRET}
     env.pop("PARTY_PARAMS", None)
     _sh(["git", "init", "-q"], work, env)
     _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
@@ -51,7 +53,9 @@ def pipeline(request, tmp_path_factory):
     # the way a user adds a plug-in; kept in conf/local/choices.yaml for every later composition
     _sh([str(BIN / "party"), "params", f"experiment={request.param}", f"generator.plugins=[{STUBS}]",
          "+generator.methods.regressor={family: stub_regressor, ridge: 1.0}",
-         "+generator.methods.twolevel={family: stub_twolevel}"], work, env)
+         "+generator.methods.twolevel={family: stub_twolevel}",
+         "+part_texts.base_url='http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_E2E_SECRET}'",
+         "+part_texts.model=${oc.env:PARTY_E2E_SECRET}"], work, env)
     repro = _sh([str(BIN / "dvc"), "repro"], work, env)
     return work, env, repro
 
@@ -78,6 +82,20 @@ def test_dvc_repro_runs_every_stage(pipeline):
         assert m in metrics["results"] and "holistic" in metrics["results"][m], m
     tables = (work / "data/eval/tables.md").read_text()
     assert all(f"| {m} |" in tables for m in methods)
+
+
+@pytest.mark.slow
+def test_a_secret_from_the_environment_reaches_no_file(pipeline):
+    """params.yaml, dvc.lock, the MLflow store and its artifacts, logs, data/ and caches: the value
+    of a variable the config reads with oc.env appears in none of them (the stages did resolve it)."""
+    work, env, _ = pipeline
+    assert "${oc.env:PARTY_E2E_SECRET}" in (work / "params.yaml").read_text()
+    found = [str(p.relative_to(work)) for p in work.rglob("*")
+             if p.is_file() and not p.is_symlink() and SECRET.encode() in p.read_bytes()]
+    assert not found, found
+    with sqlite3.connect(work / "mlruns" / "mlflow.db") as con:
+        logged = dict(con.execute("select key, value from params where key = 'part_texts.base_url'").fetchall())
+    assert logged["part_texts.base_url"].endswith("api_key=***")
 
 
 @pytest.mark.slow

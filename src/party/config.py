@@ -55,7 +55,24 @@ def plain(x) -> Any:
 
 
 def to_params(cfg: DictConfig) -> dict[str, Any]:
-    return OmegaConf.to_container(cfg, resolve=True)
+    """The resolved config as written to ``params.yaml``, except values read from the environment
+    (``${oc.env:NAME}``, directly or through interpolations), which stay unresolved: the stages
+    resolve them from their own environment and ``params.yaml`` (tracked by git) holds no secret."""
+    from party.secrets import keep_env_refs
+    return keep_env_refs(OmegaConf.to_container(cfg, resolve=True), OmegaConf.to_container(cfg, resolve=False))
+
+
+def refuse_literal_credentials(params: dict[str, Any], where: str) -> None:
+    """A ``ConfigError`` for a credential typed into the config (a password in a URL, an API key in
+    its query): ``params.yaml`` is tracked by git and its values are logged with every run."""
+    from party.schema import ConfigError
+    from party.secrets import literal_credentials
+    found = list(literal_credentials(params))
+    if found:
+        raise ConfigError("; ".join(f"{where}: {k} holds {why}" for k, why in found)
+                          + ". params.yaml is tracked by git and logged with every run: put the secret "
+                          "in an environment variable and write it as ${oc.env:NAME} "
+                          "(e.g. 'https://host/v1?api_key=${oc.env:MY_KEY}')")
 
 
 def dump_params(params: dict[str, Any]) -> str:
@@ -68,6 +85,7 @@ def write_params(path: str | Path = "params.yaml", overrides: Sequence[str] = ()
                  config_dir: str | Path = "conf") -> dict[str, Any]:
     from party.io import write_text
     params = to_params(compose(overrides, config_dir))
+    refuse_literal_credentials(params, "conf/ + overrides")
     write_text(path, dump_params(params))
     return params
 

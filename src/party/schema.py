@@ -973,8 +973,10 @@ def _yaml_scalar(s: str):
 
 
 def _plain(cfg, where: str) -> dict:
+    from party.secrets import scan
     try:
         node = cfg if isinstance(cfg, (DictConfig, ListConfig)) else OmegaConf.create(cfg)
+        scan(node)                     # values read with oc.env are masked wherever they are logged
         plain = OmegaConf.to_container(node, resolve=True)
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", "") or ""

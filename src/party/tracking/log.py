@@ -17,6 +17,8 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
+from party.secrets import redact, redact_tree
+
 log = logging.getLogger("party.tracking")
 
 
@@ -34,7 +36,7 @@ def flatten_config(cfg: DictConfig | Mapping, max_value_len: int | None = None,
     Lists of scalars (and nested lists) become one JSON value; lists holding mappings are
     indexed (``a.0.b``). Values longer than MLflow's limit are cut and end in ``...``
     (the full config is logged as ``config.yaml`` as well). Characters MLflow forbids in
-    keys become ``_``.
+    keys become ``_``. Credentials are masked (``party.secrets.redact``).
     """
     if max_value_len is None:
         max_value_len = _mlflow_param_limit()
@@ -55,7 +57,7 @@ def flatten_config(cfg: DictConfig | Mapping, max_value_len: int | None = None,
                 walk(f"{prefix}.{i}", v)
         else:
             key = _BAD_KEY_CHARS.sub("_", prefix)[:max_key_len]
-            val = leaf(node)
+            val = redact(leaf(node))
             if len(val) > max_value_len:
                 val = val[: max_value_len - 3] + "..."
             out[key] = val
@@ -65,6 +67,8 @@ def flatten_config(cfg: DictConfig | Mapping, max_value_len: int | None = None,
 
 
 def _to_container(cfg) -> dict:
+    from party.secrets import scan
+    scan(cfg)               # the values it reads with oc.env are masked wherever it is logged
     if isinstance(cfg, DictConfig):
         try:
             return OmegaConf.to_container(cfg, resolve=True)
@@ -75,9 +79,8 @@ def _to_container(cfg) -> dict:
 
 
 def _config_yaml(cfg) -> str:
-    if isinstance(cfg, DictConfig):
-        return OmegaConf.to_yaml(OmegaConf.create(_to_container(cfg)))
-    return OmegaConf.to_yaml(OmegaConf.create(dict(cfg)))
+    """The resolved config as YAML, credentials masked."""
+    return OmegaConf.to_yaml(OmegaConf.create(redact_tree(_to_container(cfg))))
 
 
 def _mlflow_param_limit() -> int:
@@ -187,7 +190,7 @@ def log_params(params: Mapping[str, Any], run_id: str | None = None) -> None:
         return
     from mlflow.entities import Param
 
-    items = [Param(str(k), str(v)) for k, v in params.items()]
+    items = [Param(str(k), redact(v)) for k, v in params.items()]
     for i in range(0, len(items), 100):  # MLflow's batch limit
         client.log_batch(run_id, params=items[i:i + 100])
 
@@ -213,13 +216,13 @@ def set_tags(tags: Mapping[str, Any], run_id: str | None = None) -> None:
         return
     from mlflow.entities import RunTag
 
-    client.log_batch(run_id, tags=[RunTag(str(k), str(v)) for k, v in tags.items()])
+    client.log_batch(run_id, tags=[RunTag(str(k), redact(v)) for k, v in tags.items()])
 
 
 def log_text(text: str, artifact_file: str, run_id: str | None = None) -> None:
     client, run_id = _client(run_id)
     if client is not None:
-        client.log_text(run_id, text, artifact_file)
+        client.log_text(run_id, redact(text), artifact_file)
 
 
 def log_json(obj: Any, artifact_file: str, run_id: str | None = None) -> None:

@@ -1,0 +1,92 @@
+"""Secrets stay in the environment: ``params.yaml`` keeps ``${oc.env:...}`` unresolved, a literal
+credential in the config is refused, and MLflow params, tags and artifacts hold masks only."""
+import sqlite3
+from pathlib import Path
+
+import pytest
+import yaml
+
+from party.config import load_params, write_params
+from party.schema import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+SECRET = "s3cr3t-8d1f-planted"
+URL = "+part_texts.base_url='http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_TEST_SECRET}'"
+MODEL = "+part_texts.model=${oc.env:PARTY_TEST_SECRET}"     # the bare value, no URL around it
+
+
+@pytest.fixture
+def secret_env(monkeypatch):
+    monkeypatch.setenv("PARTY_TEST_SECRET", SECRET)
+
+
+def _params(tmp_path: Path, *overrides: str) -> Path:
+    p = tmp_path / "params.yaml"
+    write_params(p, [f"paths.prepared={tmp_path / 'prepared'}", f"tracking.dir={tmp_path / 'mlruns'}",
+                     "progress=false", *overrides], ROOT / "conf")
+    return p
+
+
+def test_params_yaml_keeps_values_from_the_environment_unresolved(tmp_path, secret_env):
+    p = _params(tmp_path, URL, MODEL, "+part_texts.api_key_env=${part_texts.model}")
+    text = p.read_text()
+    assert SECRET not in text
+    pt = yaml.safe_load(text)["part_texts"]
+    assert pt["base_url"] == "http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_TEST_SECRET}"
+    assert pt["model"] == "${oc.env:PARTY_TEST_SECRET}"
+    assert pt["api_key_env"] == "${part_texts.model}"          # an interpolation that reads the environment
+    cfg = load_params(p)                                       # the stage resolves it from its own environment
+    assert cfg.part_texts.base_url.endswith(f"api_key={SECRET}") and cfg.part_texts.api_key_env == SECRET
+
+
+@pytest.mark.parametrize("value, why", [
+    ("https://alice:pw@llm.example/v1", "user information"),
+    ("https://llm.example/v1?token=abc123", "'token'"),
+    ("https://llm.example/v1?x=1&api_key=abc123", "'api_key'"),
+])
+def test_a_literal_credential_is_refused_before_params_yaml_is_written(tmp_path, value, why):
+    with pytest.raises(ConfigError, match=rf"part_texts\.base_url holds .*{why}.*oc\.env"):
+        _params(tmp_path, f"+part_texts.base_url='{value}'")
+    assert not (tmp_path / "params.yaml").exists()
+
+
+def test_logged_params_and_config_mask_credentials(tmp_path, secret_env):
+    from party.tracking.log import _config_yaml, flatten_config
+    cfg = load_params(_params(tmp_path, URL, MODEL))
+    flat = flatten_config(cfg)
+    assert flat["part_texts.base_url"] == "http://127.0.0.1:9/v1?api_key=***"
+    assert flat["part_texts.model"] == "***"
+    assert SECRET not in "".join(flat.values()) and SECRET not in _config_yaml(cfg)
+
+
+def test_redact_masks_userinfo_query_credentials_and_registered_values():
+    from party.secrets import redact, register
+    register("sk-registered-key-1")
+    assert redact("GET https://bob:hunter2@h.example/v1?model=m&access_token=t0k&x=1 failed") == \
+        "GET https://***@h.example/v1?model=m&access_token=***&x=1 failed"
+    assert redact("Bearer sk-registered-key-1") == "Bearer ***"
+    assert redact("sampling=top_k, keys: 3") == "sampling=top_k, keys: 3"
+
+
+def test_a_failed_stage_logs_no_secret(tmp_path, secret_env, monkeypatch):
+    """The error tag, error.txt, the params and config.yaml of a failing stage hold masks only."""
+    from party.stages import cache_part_texts
+    from party.text.backends.base import BackendError
+
+    cfg = load_params(_params(tmp_path, URL, MODEL))
+
+    def boom(path):
+        raise BackendError(f"no answer from {cfg.part_texts.base_url} for model {cfg.part_texts.model}")
+    monkeypatch.setattr(cache_part_texts, "load_index", boom)
+    with pytest.raises(BackendError, match=SECRET):             # the user's own terminal sees the error whole
+        cache_part_texts.run(cfg)
+    db = tmp_path / "mlruns" / "mlflow.db"
+    with sqlite3.connect(db) as con:
+        tags = dict(con.execute("select key, value from tags").fetchall())
+        params = dict(con.execute("select key, value from params").fetchall())
+    assert "api_key=***" in tags["party.error"] and "model ***" in tags["party.error"]
+    assert SECRET.encode() not in db.read_bytes()
+    assert params["part_texts.base_url"].endswith("api_key=***")
+    arts = [p for p in (tmp_path / "mlruns").rglob("*") if p.is_file()]
+    assert {p.name for p in arts} >= {"error.txt", "config.yaml"}
+    assert not [p for p in arts if SECRET.encode() in p.read_bytes()]
