@@ -86,7 +86,7 @@ def test_a_damaged_model_file_names_the_file_and_the_stage(tmp_path):
     from party.tokenizers import load_tokenizer
 
     torch.save({"w": torch.ones(1000)}, tmp_path / "good.pt")
-    assert torch.equal(load_torch(tmp_path / "good.pt", "party make_x", "thing")[0]["w"], torch.ones(1000))
+    assert torch.equal(load_torch(tmp_path / "good.pt", "party make_x", "thing")["w"], torch.ones(1000))
     (tmp_path / "model.pt").write_bytes((tmp_path / "good.pt").read_bytes()[:300])
     for load, stage in ((load_generator, "party train_generator"), (load_tokenizer, "party train_vqvae"),
                         (torch_load, "party train_evaluator")):

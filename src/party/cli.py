@@ -10,6 +10,9 @@
     party stages                      list the stages, with their inputs and outputs (dvc.yaml)
     party sweep-status <out_dir>      a grid's points: done / running / failed / pending
     party repro [-j N] [stage ...]    dvc repro with up to N independent stages at once
+    party convert-checkpoint --trust IN OUT
+                                      rewrite a model file that only a full unpickle reads
+                                      (runs its code: trusted files only) as loadable data
 
 A stage is the module ``party.stages.<stage>`` with a ``run(cfg)`` function (built
 with ``party.stage.stage``); it runs as a Hydra app whose primary config is
@@ -289,6 +292,9 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd == "repro":
         from party.repro import main as repro_main
         return repro_main(rest)
+    if cmd == "convert-checkpoint":
+        from party.checkpoints import main as convert_main
+        return convert_main(rest)
     if cmd == "generate":
         from party.stages.generate import is_plain, plain
         if is_plain(rest):

@@ -182,17 +182,24 @@ def _atomic_checkpoint_cls():
     from lightning.pytorch.callbacks import Callback
 
     class AtomicCheckpoint(Callback):
-        """Save ``path`` every ``every`` iterations and at the end, via a temp name + rename."""
+        """Save ``path`` every ``every`` iterations and at the end, via a unique temp name,
+        fsync and rename."""
 
         def __init__(self, path: Path, every: int):
             self.path, self.every = Path(path), int(every)
 
         def _save(self, trainer) -> None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.path.with_name(f".{self.path.name}.tmp")
-            trainer.save_checkpoint(tmp, weights_only=False)   # the full state: a resume continues exactly
-            if trainer.is_global_zero:
-                os.replace(tmp, self.path)
+            from party.io import replace_durably, temp_beside
+            # rank 0 makes the temp (O_EXCL: never a planted file or link); every rank names it
+            tmp = temp_beside(self.path) if trainer.is_global_zero else None
+            tmp = Path(trainer.strategy.broadcast(str(tmp) if tmp else None, src=0))
+            try:
+                trainer.save_checkpoint(tmp, weights_only=False)   # the full state: a resume continues exactly
+                if trainer.is_global_zero:
+                    replace_durably(tmp, self.path)
+            finally:
+                if trainer.is_global_zero and os.path.lexists(tmp):
+                    tmp.unlink()
 
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
             if self.every > 0 and trainer.global_step % self.every == 0:

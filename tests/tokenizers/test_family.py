@@ -111,7 +111,8 @@ def test_model_pt_loads_weights_only(tiny_prepared, tmp_path, caplog):
 
 
 def test_legacy_model_pt(tiny_prepared, tmp_path, caplog):
-    """Format /1 (no family) loads as temporal_vq; only such files may need weights_only=False."""
+    """Format /1 (no family) loads as temporal_vq; a file that holds other objects than data
+    (an older writer's numpy arrays) is refused whatever its format, until converted."""
     cfg = tiny_cfg(tmp_path, tiny_prepared)
     tok = _tokenizer(cfg, "legs").eval()
     old = tok.export()
@@ -121,17 +122,20 @@ def test_legacy_model_pt(tiny_prepared, tmp_path, caplog):
     caplog.set_level(logging.INFO, logger=LOG)
     a = load_tokenizer(tmp_path / "v1.pt")
     assert type(a.model) is VQVAE and a.family == "temporal_vq" and "weights_only=True" in caplog.text
-    # an older writer that pickled a non-tensor object: loaded with weights_only=False, logged
+    # an older writer that pickled a non-tensor object: refused, naming the conversion command
     torch.save({**old, "meta": {**old["meta"], "feat_index": np.asarray(old["meta"]["feat_index"])}},
                tmp_path / "v1_pickled.pt")
-    caplog.clear()
-    b = load_tokenizer(tmp_path / "v1_pickled.pt")
-    assert "weights_only=False" in caplog.text and "older party version" in caplog.text
+    with pytest.raises(ValueError, match=r"v1_pickled\.pt: NOT loaded.*party convert-checkpoint --trust"):
+        load_tokenizer(tmp_path / "v1_pickled.pt")
+    from party.checkpoints import convert_checkpoint
+    convert_checkpoint(tmp_path / "v1_pickled.pt", tmp_path / "v1_converted.pt")
+    b = load_tokenizer(tmp_path / "v1_converted.pt")
     assert all(torch.equal(v, a.state_dict()[k]) for k, v in b.state_dict().items())
-    # the current format must load safely: no fallback for it
+    assert b.meta["feat_index"] == a.meta["feat_index"]
+    # the current format: refused the same way
     torch.save({**tok.export(), "meta": {**tok.meta, "feat_index": np.asarray(tok.meta["feat_index"])}},
                tmp_path / "v2_pickled.pt")
-    with pytest.raises(ValueError, match="refusing"):
+    with pytest.raises(ValueError, match=r"v2_pickled\.pt: NOT loaded"):
         load_tokenizer(tmp_path / "v2_pickled.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match="cannot read tokenizer"):

@@ -6,11 +6,14 @@ A trained evaluator is written in the reference layout (``text_encoder``,
 (input channels, normalisation, text featuriser, dimensions). The reference
 checkpoint (``text_mot_match/model/finest.tar``) has no ``party`` entry; it
 is loaded with the GloVe files and the normalisation statistics named in the
-config (``evaluator.kind: reference``).
+config (``evaluator.kind: reference``). Both are read with ``torch.load(weights_only=True)``
+only; a file holding other objects is refused (``party convert-checkpoint --trust`` converts
+one that its owner trusts).
 """
 
 from __future__ import annotations
 
+import io
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -20,7 +23,7 @@ import torch
 
 from party.evaluation.evaluator import Evaluator
 from party.evaluation.text_input import ContextualTokens, WordVectorizer, pos_dim
-from party.io import load_torch
+from party.io import load_torch, write_bytes
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
@@ -28,7 +31,7 @@ REFERENCE_KEYS = ("text_encoder", "motion_encoder", "movement_encoder")
 
 
 def torch_load(path: str | Path, produced_by: str = "party train_evaluator") -> dict:
-    ckpt, _ = load_torch(path, produced_by, "evaluator checkpoint", legacy_pickle=True)
+    ckpt = load_torch(path, produced_by, "evaluator checkpoint")
     if not isinstance(ckpt, Mapping) or any(k not in ckpt for k in REFERENCE_KEYS):
         raise ValueError(f"{path}: not an evaluator checkpoint (needs keys {list(REFERENCE_KEYS)})")
     return ckpt
@@ -55,14 +58,12 @@ def evaluator_meta(ev: Evaluator, text_input: str, dims: Mapping, max_text_len: 
 
 
 def save_evaluator(path: str | Path, ev: Evaluator, meta: Mapping, epoch: int = 0, it: int = 0) -> None:
-    """Atomic write of a reference-layout checkpoint with a ``party`` entry."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Atomic write (unique temp name, fsynced) of a reference-layout checkpoint with a ``party`` entry."""
     state = {**{k: {n: t.cpu() for n, t in v.items()} for k, v in ev.reference_state().items()},
              "epoch": int(epoch), "iter": int(it), "party": dict(meta)}
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    write_bytes(path, buf.getvalue())
 
 
 def load_trained(path: str | Path, device: str | torch.device = "cpu", text_encoder=None,

@@ -23,7 +23,7 @@ Three featurisers share that interface, ``f(captions, tokens) ->
 from __future__ import annotations
 
 import pickle
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +71,35 @@ def pad_tokens(tokens: Sequence[str], max_text_len: int) -> tuple[list[str], int
     return toks + ["unk/OTHER"] * (max_text_len + 2 - n), n
 
 
+class _NoGlobals(pickle.Unpickler):
+    """Unpickles lists, dicts, str and numbers; any class or function (a global) is refused."""
+
+    def find_class(self, module, name):
+        raise pickle.UnpicklingError(f"it names the global {module}.{name}")
+
+
+def load_plain_pickle(path: Path, check: Callable[[object], bool], expected: str):
+    """A pickle of plain data (no globals: nothing in it runs), checked to be ``expected``."""
+    try:
+        with open(path, "rb") as fh:
+            obj = _NoGlobals(fh).load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError,
+            AttributeError, RecursionError) as e:
+        raise ValueError(f"{path}: NOT loaded: a GloVe file must be a pickle of plain data ({expected}), "
+                         f"but {e}") from None
+    if not check(obj):
+        raise ValueError(f"{path}: a GloVe file must hold {expected}, got {type(obj).__name__}")
+    return obj
+
+
+def _str_list(x) -> bool:
+    return isinstance(x, list) and all(isinstance(w, str) for w in x)
+
+
+def _str_int_dict(x) -> bool:
+    return isinstance(x, dict) and all(isinstance(k, str) and type(v) is int for k, v in x.items())
+
+
 class WordVectorizer:
     """word/POS -> (word vector, POS one-hot), exactly as the reference ``WordVectorizer``."""
 
@@ -94,11 +123,14 @@ class WordVectorizer:
             if not f.is_file():
                 raise FileNotFoundError(f"{f}: GloVe file of the reference evaluator not found")
         vectors = load_npy(files[0], "the reference evaluator's release", "GloVe vectors")
-        with open(files[1], "rb") as fh:
-            words = pickle.load(fh)
-        with open(files[2], "rb") as fh:
-            word2idx = pickle.load(fh)
-        return cls(list(words), vectors[[word2idx[w] for w in words]], max_text_len)
+        words = load_plain_pickle(files[1], _str_list, "a list of str")
+        word2idx = load_plain_pickle(files[2], _str_int_dict, "a dict str -> int")
+        rows = [word2idx.get(w, -1) for w in words]
+        bad = [w for w, r in zip(words, rows) if not 0 <= r < len(vectors)]
+        if bad:
+            raise ValueError(f"{files[2]}: {len(bad)} words of {files[1].name} have no row of "
+                             f"{files[0].name} (e.g. {bad[0]!r})")
+        return cls(words, vectors[rows], max_text_len)
 
     def lookup(self, token: str) -> tuple[int, int]:
         word, _, pos = token.partition("/")

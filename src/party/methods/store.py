@@ -58,7 +58,7 @@ def load_weights(path: str | Path, fmt: str, map_location="cpu") -> dict:
     path = Path(path)
     if path.is_dir():
         path = path / "model.pt"
-    obj, _ = load_torch(path, "party train_generator", "generator", map_location)
+    obj = load_torch(path, "party train_generator", "generator", map_location)
     if not isinstance(obj, dict) or obj.get("format") != fmt:
         raise ValueError(f"{path}: not a party generator (format {obj.get('format') if isinstance(obj, dict) else '?'}, "
                          f"expected {fmt}); rerun `party train_generator`")
@@ -73,7 +73,7 @@ def weights_format(path: str | Path) -> str | None:
     if not path.is_file():
         return None
     try:
-        obj, _ = load_torch(path, "party train_generator", "generator")
+        obj = load_torch(path, "party train_generator", "generator")
     except (OSError, ValueError):
         return None
     return obj.get("format") if isinstance(obj, dict) else None

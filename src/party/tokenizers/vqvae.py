@@ -201,7 +201,7 @@ def build_tokenizer(in_dim: int, mcfg: Mapping[str, Any], mean, std, meta: dict)
 
 # ====================================================================== tokenizer
 TOKENIZER_FORMAT = "party.tokenizer/2"    # /2: records the family; tensors + plain containers only
-LEGACY_FORMATS = ("party.tokenizer/1",)   # no family (= LEGACY_FAMILY); may need weights_only=False
+LEGACY_FORMATS = ("party.tokenizer/1",)   # no family (= LEGACY_FAMILY)
 _PLAIN = (str, int, float, bool, type(None))
 
 
@@ -214,8 +214,8 @@ def _plain(x, where: str = "config"):
         return {str(k): _plain(v, f"{where}.{k}") for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [_plain(v, f"{where}[{i}]") for i, v in enumerate(x)]
-    if hasattr(x, "item") and getattr(x, "shape", None) == ():      # numpy / torch scalar
-        x = x.item()
+    if hasattr(x, "tolist") and getattr(x, "shape", None) is not None:   # numpy / torch array or scalar
+        return _plain(x.tolist(), where)
     if isinstance(x, _PLAIN):
         return x
     raise TypeError(f"tokenizer {where}: {type(x).__name__} is not a plain value (str, int, float, "
@@ -362,13 +362,13 @@ def save_tokenizer(tok: Tokenizer, path) -> None:
 def load_tokenizer(path, map_location="cpu") -> Tokenizer:
     """Load a tokenizer from its folder (``model.pt``), a ``model.pt`` or a Lightning ``.ckpt``.
 
-    Files are read with ``torch.load(weights_only=True)``; only files in a legacy format
-    (``party.tokenizer/1``) may fall back to ``weights_only=False`` (logged)."""
+    Files are read with ``torch.load(weights_only=True)`` only: a file holding other objects
+    (e.g. an older writer's numpy arrays) is refused, naming ``party convert-checkpoint --trust``."""
     from pathlib import Path
     path = Path(path)
     if path.is_dir():
         path = path / "model.pt"
-    obj, safe = load_torch(path, "party train_vqvae", "tokenizer", map_location, legacy_pickle=True)
+    obj = load_torch(path, "party train_vqvae", "tokenizer", map_location)
     if isinstance(obj, dict) and "party_tokenizer" in obj:      # Lightning checkpoint
         exp = dict(obj["party_tokenizer"])
         exp["state_dict"] = {k[len("tok."):]: v for k, v in obj["state_dict"].items() if k.startswith("tok.")}
@@ -376,10 +376,12 @@ def load_tokenizer(path, map_location="cpu") -> Tokenizer:
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: not a party tokenizer file")
     fmt = obj.get("format")
-    if not safe and fmt not in LEGACY_FORMATS:
-        raise ValueError(f"{path}: format {fmt!r} must load with weights_only=True but holds other "
-                         "objects than tensors and plain containers; refusing it")
+    if isinstance(obj.get("meta"), Mapping):     # a converted file may hold arrays as tensors
+        try:
+            obj = {**obj, "meta": _plain(obj["meta"], "meta")}
+        except TypeError as e:
+            raise ValueError(f"{path}: not a party tokenizer file ({e})") from None
     tok = Tokenizer.from_export(obj, str(path))
-    log.info("%s: %s tokenizer (format %s, family %s), loaded with weights_only=%s", path,
-             tok.meta["stream"], fmt, tok.family, safe)
+    log.info("%s: %s tokenizer (format %s, family %s), loaded with weights_only=True", path,
+             tok.meta["stream"], fmt, tok.family)
     return tok
