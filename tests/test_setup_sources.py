@@ -1,5 +1,7 @@
-"""scripts/pip_sources.py: pip's configured sources become uv's arguments (scripts/setup.sh)."""
+"""scripts/pip_sources.py: pip's configured sources become uv's environment (scripts/setup.sh)."""
 import importlib.util
+
+import pytest
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "pip_sources.py"
@@ -23,14 +25,29 @@ def test_every_source_passed_on_in_pip_order():
         "global.index-url='https://files.example/simple'",
         "user.index-url='https://mirror.example/simple'",
     ])
-    assert _mod().parse(listing) == [
-        "--index-url", "https://mirror.example/simple",       # user file over global, one index only
-        "--extra-index-url", "file:///opt/a/simple", "--extra-index-url", "file:///opt/b/simple",
-        "--find-links", "/opt/wheels",                         # env and global: once
-        "--constraint", "/etc/xdg/pip/constraints.txt",
-    ]
+    assert _mod().uv_env(listing) == {
+        "UV_INDEX_URL": "https://mirror.example/simple",       # user file over global, one index only
+        "UV_EXTRA_INDEX_URL": "file:///opt/a/simple file:///opt/b/simple",
+        "UV_FIND_LINKS": "/opt/wheels",                        # env and global: once
+        "UV_CONSTRAINT": "/etc/xdg/pip/constraints.txt",
+    }
 
 
 def test_nothing_configured_nothing_passed():
-    assert _mod().parse("") == []
-    assert _mod().parse("global.timeout='60'\nnot a setting") == []
+    assert _mod().uv_env("") == {}
+    assert _mod().uv_env("global.timeout='60'\nnot a setting") == {}
+
+
+def test_multi_line_values_as_pip_prints_them():
+    """pip.conf's one-URL-a-line values come out of `pip config list` as a repr with `\\n`."""
+    listing = ("global.extra-index-url='\\nhttps://a.example/simple\\nhttps://b.example/simple'\n"
+               "global.find-links='/opt/w1 /opt/w2'")
+    assert _mod().uv_env(listing) == {
+        "UV_EXTRA_INDEX_URL": "https://a.example/simple https://b.example/simple",
+        "UV_FIND_LINKS": "/opt/w1,/opt/w2",                    # uv splits this one on commas
+    }
+
+
+def test_a_value_holding_uvs_separator_is_refused_without_its_credentials():
+    with pytest.raises(ValueError, match=r"find-links entry 'https://\*\*\*@h.example/a,b/'"):
+        _mod().uv_env("global.find-links='https://u:tok@h.example/a,b/'")

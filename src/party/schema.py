@@ -292,6 +292,7 @@ class PartTexts:
     model: Optional[str] = None
     api_key_env: Optional[str] = None
     temperature: Optional[float] = None
+    allow_insecure_http: Optional[bool] = None   # plain http to a non-loopback host
     max_tokens: Optional[int] = None
     timeout_s: Optional[float] = None
     max_retries: Optional[int] = None

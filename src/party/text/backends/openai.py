@@ -13,12 +13,25 @@ Per caption (``describe``):
 - other HTTP errors (400/401/403/404...) raise ``BackendError``: config is wrong, retrying won't help.
 
 The API key is read from the environment variable named by ``api_key_env`` and only ever put in
-the Authorization header; it is never logged or stored.
+the Authorization header of requests to ``base_url``'s own host; it is never logged or stored, and
+error messages and failure reasons are masked (the key, URL userinfo and credential query values,
+``party.secrets.redact``). The key stays with its host:
+
+- redirects are never followed (an OpenAI-compatible POST has no use for them, and urllib would
+  copy the header to the new host): a 3xx is a ``BackendError``, not retried, naming the
+  configured URL and the Location's origin; set ``base_url`` to the final address;
+- ``base_url`` must be https, except for loopback hosts (127.0.0.0/8, ::1, localhost), unless
+  ``allow_insecure_http: true`` (a trusted network); checked when the backend is built, before
+  any request; credentials in the URL itself (``user:pass@``) are refused;
+- plain-http requests never go through a proxy (``http_proxy`` would receive the key in clear);
+  https requests honour ``https_proxy``/``no_proxy`` through a CONNECT tunnel, so a proxy sees
+  only the host name.
 """
 from __future__ import annotations
 
 import email.utils
 import http.client
+import ipaddress
 import json
 import logging
 import os
@@ -27,8 +40,10 @@ import socket
 import threading
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 
+from party.secrets import MASK, redact, register
 from party.text.backends.base import BackendError, PartTextResult
 from party.text.prompt import FormatError, build_messages, parse_answer, prompt_fingerprint
 
@@ -40,6 +55,41 @@ class TransientError(Exception):
     def __init__(self, msg: str, retry_after: float | None = None):
         super().__init__(msg)
         self.retry_after = retry_after
+
+
+def is_loopback(host: str | None) -> bool:
+    """True for 127.0.0.0/8, ::1 (also IPv4-mapped) and ``localhost``."""
+    h = (host or "").strip("[]").rstrip(".").lower()
+    if h == "localhost":
+        return True
+    try:
+        ip = ipaddress.ip_address(h)
+    except ValueError:
+        return False
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return (mapped or ip).is_loopback
+
+
+def origin(url: str) -> str:
+    """``scheme://host[:port]`` of ``url``, without userinfo, path or query."""
+    u = urllib.parse.urlsplit(url)
+    host = u.hostname or ""
+    if ":" in host:
+        host = f"[{host}]"
+    try:
+        port = u.port
+    except ValueError:
+        port = None
+    return f"{u.scheme.lower()}://{host}" + (f":{port}" if port is not None else "")
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """Every 3xx reaches the caller as an ``HTTPError``: nothing is re-sent anywhere."""
+
+    def http_error_302(self, req, fp, code, msg, headers):
+        return None
+
+    http_error_301 = http_error_303 = http_error_307 = http_error_308 = http_error_302
 
 
 def _retry_after(value: str | None) -> float | None:
@@ -61,7 +111,12 @@ class OpenAIBackend:
     def __init__(self, cfg, stop: threading.Event | None = None):
         self.cfg = cfg
         self.model = str(cfg.model)
-        self.url = str(cfg.base_url).rstrip("/") + "/chat/completions"
+        base = cfg.get("base_url")
+        if not base:
+            raise BackendError("part_texts.base_url is not set (the server's OpenAI-compatible /v1 address)")
+        u = urllib.parse.urlsplit(str(base))          # a query (?api-version=...) stays a query
+        self.url = urllib.parse.urlunsplit(u._replace(path=u.path.rstrip("/") + "/chat/completions",
+                                                      fragment=""))
         self.no_movement = str(cfg.no_movement_text)
         self.part_names = [str(p) for p in cfg.parts]
         self.stop = stop or threading.Event()
@@ -70,39 +125,79 @@ class OpenAIBackend:
         self._key = os.environ.get(env) if env else None
         if env and not self._key:
             log.warning("environment variable %s is not set: sending requests without an API key", env)
+        register(self._key)                                  # masked in whatever is logged
+        self._opener = self._build_opener(bool(cfg.get("allow_insecure_http") or False))
         self._rng = random.Random(int(cfg.seed))
+
+    def _scrub(self, text) -> str:
+        text = redact(text)
+        return text.replace(self._key, MASK) if self._key else text
+
+    def _build_opener(self, allow_insecure_http: bool) -> urllib.request.OpenerDirector:
+        """Check ``base_url`` (before any request) and build the opener that never redirects."""
+        shown = self._scrub(self.url)
+        u = urllib.parse.urlsplit(self.url)
+        scheme = u.scheme.lower()
+        if scheme not in ("http", "https") or not u.hostname:
+            raise BackendError(f"part_texts.base_url {shown}: not an http(s) URL with a host")
+        if u.username is not None or u.password is not None:
+            raise BackendError(f"part_texts.base_url {shown}: credentials in the URL are not supported; "
+                               f"put the key in the environment variable named by part_texts.api_key_env")
+        if scheme == "http" and not is_loopback(u.hostname) and not allow_insecure_http:
+            raise BackendError(
+                f"part_texts.base_url {shown}: plain http to a host that is not loopback would send the "
+                f"API key and the captions in clear; use https, or set part_texts.allow_insecure_http=true "
+                f"for a trusted network")
+        handlers: list = [_NoRedirect()]
+        if scheme == "http":
+            handlers.append(urllib.request.ProxyHandler({}))   # a proxy would see the key in clear
+        # https: the default ProxyHandler (https_proxy, no_proxy) tunnels with CONNECT; the
+        # Authorization header only travels inside TLS to the host itself
+        return urllib.request.build_opener(*handlers)
 
     # -- one HTTP request -------------------------------------------------------------
     def _post(self, body: bytes) -> str:
         headers = {"Content-Type": "application/json", "Accept": "application/json"}
-        if self._key:
-            headers["Authorization"] = f"Bearer {self._key}"
         req = urllib.request.Request(self.url, data=body, headers=headers, method="POST")
+        if self._key:      # unredirected: never copied onto a follow-up request by any handler
+            req.add_unredirected_header("Authorization", f"Bearer {self._key}")
         try:
-            with urllib.request.urlopen(req, timeout=float(self.cfg.timeout_s)) as resp:
+            with self._opener.open(req, timeout=float(self.cfg.timeout_s)) as resp:
                 payload = resp.read()
         except urllib.error.HTTPError as e:
-            detail = e.read()[:300].decode("utf-8", "replace")
+            if 300 <= e.code < 400:
+                loc = e.headers.get("Location")
+                e.close()
+                where = origin(urllib.parse.urljoin(self.url, loc)) if loc else "no Location given"
+                raise BackendError(
+                    f"{self._scrub(self.url)}: HTTP {e.code} redirect to {self._scrub(where)}; redirects "
+                    f"are not followed (the API key goes only to the configured host): set "
+                    f"part_texts.base_url to the final address") from None
+            try:
+                detail = self._scrub(e.read(65536).decode("utf-8", "replace"))[:300]
+            except (OSError, http.client.HTTPException):
+                detail = ""
             if e.code in RETRY_STATUS:
                 raise TransientError(f"HTTP {e.code}", _retry_after(e.headers.get("Retry-After"))) from None
-            raise BackendError(f"{self.url}: HTTP {e.code} {e.reason}: {detail} "
+            raise BackendError(f"{self._scrub(self.url)}: HTTP {e.code} {self._scrub(e.reason)}: {detail} "
                                f"(check part_texts.base_url / model / {self.cfg.api_key_env})") from None
         except (TimeoutError, socket.timeout) as e:
-            raise TransientError(f"timeout after {self.cfg.timeout_s}s ({e})") from None
+            raise TransientError(self._scrub(f"timeout after {self.cfg.timeout_s}s ({e})")) from None
         except urllib.error.URLError as e:
             if isinstance(e.reason, (TimeoutError, socket.timeout)):
                 raise TransientError(f"timeout after {self.cfg.timeout_s}s") from None
-            raise TransientError(f"connection error: {e.reason}") from None
+            raise TransientError(self._scrub(f"connection error: {e.reason}")) from None
         except (ConnectionError, http.client.HTTPException) as e:
-            raise TransientError(f"connection error: {type(e).__name__}: {e}") from None
+            raise TransientError(self._scrub(f"connection error: {type(e).__name__}: {e}")) from None
         try:
             obj = json.loads(payload)
             content = obj["choices"][0]["message"]["content"]
         except (ValueError, KeyError, IndexError, TypeError) as e:
             # a truncated or foreign body (a proxy's HTML page, a cut connection) is the
             # transport's failure, not the model's answer: retried, never cached as an answer
+            excerpt = self._scrub(repr(payload[:4096]))[:120]
             raise TransientError(f"response body is not a chat completion ({type(e).__name__}: "
-                                 f"{payload[:120]!r})") from None
+                                 f"{excerpt})") from None
         if content is not None and not isinstance(content, str):
             raise TransientError(f"response content is a {type(content).__name__}, not text")
         return content or ""
