@@ -10,9 +10,11 @@ if [ -z "$MLFLOW" ]; then
   exit 1
 fi
 # a moved or copied clone: point the store's recorded artifact locations at this folder first
+# (the path goes in as an argument: pasted into the Python source, a folder name could be code)
 PY="$(dirname "$MLFLOW")/python"
 [ -x "$PY" ] && [ -f mlruns/mlflow.db ] && "$PY" -c \
-  "from party.tracking import relocate_store; relocate_store('sqlite:///$PWD/mlruns/mlflow.db')" || true
+  'import sys; from party.tracking import relocate_store; relocate_store("sqlite:///" + sys.argv[1])' \
+  "$PWD/mlruns/mlflow.db" || true
 # the experiments' page in the model-training view (party marks its experiments
 # mlflow.experimentKind=custom_model_development); the sidebar's GenAI / Model training switch
 # is remembered by the browser

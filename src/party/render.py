@@ -34,6 +34,19 @@ TRAJ_COLOR = "#ff7f0e"
 _TITLE_PT = 10
 _PANEL_TITLE_PT = 9
 
+#: keyword arguments of every Matplotlib call of the project that draws a caption, a title or a
+#: label: the text as given. Matplotlib would otherwise read text between two ``$`` as mathtext, so
+#: a caption such as ``a man walks $^$ fast`` raised ValueError, and ``costs $5 or $6`` lost its
+#: dollar signs. (Legends take no keyword for it: ``plain_legend``.)
+PLAIN_TEXT = {"parse_math": False}
+
+
+def plain_legend(legend):
+    """``legend``'s texts drawn as given (see ``PLAIN_TEXT``); returns the legend."""
+    for t in legend.get_texts():
+        t.set_parse_math(False)
+    return legend
+
 
 def _check_motions(motions: Sequence, skeleton_name: str, where: str) -> list[np.ndarray]:
     skel = get_skeleton(skeleton_name)
@@ -108,7 +121,7 @@ class _Scene:
         self.fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
         self.canvas = FigureCanvasAgg(self.fig)
         if head:
-            self.fig.text(0.5, 1 - 3 / height, head, ha="center", va="top", fontsize=_TITLE_PT)
+            self.fig.text(0.5, 1 - 3 / height, head, ha="center", va="top", fontsize=_TITLE_PT, **PLAIN_TEXT)
 
         # shared bounds over all motions, equal scale on all axes, fitted to the data
         allp = np.concatenate([m.reshape(-1, 3) for m in self.motions])
@@ -143,13 +156,13 @@ class _Scene:
                     lw=0.8, alpha=0.35)
             if i < len(sub) and sub[i]:
                 self.fig.text((i + 0.5) / n, 1 - (5 + head_px) / height, sub[i], ha="center",
-                              va="top", fontsize=_PANEL_TITLE_PT)
+                              va="top", fontsize=_PANEL_TITLE_PT, **PLAIN_TEXT)
             traj, = ax.plot([], [], [], color=TRAJ_COLOR, lw=1.6, animated=True)
             lines = [ax.plot([], [], [], color=c, lw=2.2, marker="o", markersize=2.0,
                              solid_capstyle="round", animated=True)[0] for c in colors]
             self.axes.append(ax)
             self.dynamic.append((m, floor, traj, list(zip(chains, lines))))
-        self.counter = self.fig.text(0.01, 0.01, "", fontsize=7, color="#666666", animated=True)
+        self.counter = self.fig.text(0.01, 0.01, "", fontsize=7, color="#666666", animated=True, **PLAIN_TEXT)
         self.canvas.draw()
         self.background = self.canvas.copy_from_bbox(self.fig.bbox)
         w, h = self.canvas.get_width_height()

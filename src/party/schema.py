@@ -20,9 +20,10 @@ Checks: unknown keys, missing required keys, types (strict: a quoted ``'5'`` is 
 an int, ``1`` is not a bool; an int is a float), ranges where a stage cannot run outside
 them (``_range``: counts >= 1, probabilities, positive scales; bounds, not values),
 ``null`` only where the schema says Optional, and the few genuine unions (``trainer.devices``: int | str | list of int;
-``eval.sources.generated``: str | list of str). ``???`` (the conf's own "must be
-set" marker, e.g. ``dataset.root`` of a real dataset) is accepted: OmegaConf raises,
-naming the key, when a stage reads it. The returned config holds the values exactly
+``eval.sources.generated``: str | list of str), and names (``NAME_KEYS``: streams, parts and
+methods become folder names and dvc.yaml command words, so each is a plain name,
+``party.names``). ``???`` (the conf's own "must be set" marker, e.g. ``dataset.root`` of a
+real dataset) is accepted: OmegaConf raises, naming the key, when a stage reads it. The returned config holds the values exactly
 as given (resolved, never coerced or filled in), so params.yaml, config hashes and
 ``cfg.get(key, default)`` lookups behave as before.
 
@@ -1003,4 +1004,51 @@ def validate(cfg, where: str = "config", *, partial: bool = False) -> DictConfig
         except (ImportError, ValueError) as e:
             raise ConfigError(f"{where}: generator.plugins: {e}", "generator.plugins") from None
     _check(Config, plain, "", where, partial)
+    _check_names(plain, where)
     return OmegaConf.create(plain)
+
+
+# --------------------------------------------------------------------------- names
+
+#: keys holding names (``party.names``): each becomes a folder or file name (``<out_dir>/<stream>/``,
+#: ``<metrics_dir>/recon_<stream>.json``), and dvc.yaml pastes the streams (``${item}``) and the
+#: methods (``${key}``) into the shell commands it runs. (dotted key, where its names are: the
+#: value, its items, its keys, or the items of each of its values)
+NAME_KEYS: tuple[tuple[str, str], ...] = (
+    ("dataset.parts.streams", "items"), ("dataset.parts.parts", "keys"),
+    ("dataset.parts.stream_parts", "keys"), ("dataset.parts.stream_parts", "value items"),
+    ("dataset.parts.coherence", "keys"),
+    ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.tokenizers", "keys"),
+    ("evaluator.stream", "value"), ("evaluator.streams", "items"),
+    ("eval.sources.tokenizers", "items"),
+    ("generator.method", "value"), ("generator.methods", "keys"), ("generator.streams", "items"),
+)
+
+
+def _check_names(plain: Mapping, where: str) -> None:
+    """Every name under ``NAME_KEYS`` is a plain name; a ``ConfigError`` names the key otherwise
+    (absent keys and ``???`` are left to the type checks)."""
+    from party.names import NAME_RULE, is_name
+
+    def bad(key: str, v, what: str = "") -> None:
+        if not _is_missing(v) and not is_name(v):
+            _fail(where, key, f"{what}{_short(v)} is not a plain name ({NAME_RULE})")
+
+    for dotted, how in NAME_KEYS:
+        node: Any = plain
+        for k in dotted.split("."):
+            node = node.get(k) if isinstance(node, Mapping) else None
+        if node is None or _is_missing(node):
+            continue
+        if how == "value":
+            bad(dotted, node)
+        elif how == "items" and isinstance(node, (list, tuple)):
+            for i, v in enumerate(node):
+                bad(_join(dotted, i), v)
+        elif how == "keys" and isinstance(node, Mapping):
+            for k in node:
+                bad(dotted, k, "key ")
+        elif how == "value items" and isinstance(node, Mapping):
+            for k, items in node.items():
+                for i, v in enumerate(items if isinstance(items, (list, tuple)) else ()):
+                    bad(_join(_join(dotted, k), i), v)

@@ -12,6 +12,9 @@ A grid is a YAML file (``conf/sweep/<name>.yaml`` or any path)::
     exclude:                           # optional: points left out ({axis: label} all matching)
       - {window: w4, model: baseline}
 
+``name`` and the labels name folders (``<out_dir>/<name>/points/<label>-<label>/``), so each is
+a plain name (``party.names``).
+
 Each point is the caller's config plus the point's overrides (every key must
 exist: a typo fails before anything trains). ``run_grid`` opens a nested MLflow
 run per point (tags ``party.sweep``, ``party.sweep_point``) under the active
@@ -51,6 +54,7 @@ from omegaconf import OmegaConf
 
 from party import tracking
 from party.io import write_text
+from party.names import check_name
 
 log = logging.getLogger(__name__)
 _MISSING = object()
@@ -75,6 +79,11 @@ def load_sweep(name_or_path: str, conf_dir: str | Path = "conf/sweep",
     if not all(isinstance(lab, str) for lab in labels):
         raise ValueError(f"{p}: axis labels must be strings, got {[lab for lab in labels if not isinstance(lab, str)]} "
                          "(YAML reads on/off/yes/no as booleans: quote them, \"on\": [...])")
+    # names of folders: <out_dir>/<name>/points/<label>-<label>/
+    check_name(spec.get("name", p.stem), "sweep name" if "name" in spec else "sweep name (the file's)", str(p))
+    for axis, axis_labels in spec["axes"].items():
+        for lab in axis_labels:
+            check_name(lab, f"label of axis {axis!r}", str(p))
     spec.setdefault("name", p.stem)
     spec.setdefault("fixed", [])
     spec.setdefault("exclude", [])

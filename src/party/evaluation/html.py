@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from party.render import figure_png
+from party.render import PLAIN_TEXT, figure_png
 
 #: (stream or 'coherence', metric, label, higher is better)
 CHART_METRICS = (("{whole}", "top1", "R-Precision Top 1 ({whole})", True),
@@ -113,8 +113,8 @@ def bar_charts(results: Mapping, whole_stream: str, part_streams: Sequence[str])
         ax.bar(range(len(vals)), [v["mean"] for _, v in vals], yerr=[v.get("ci95", 0.0) for _, v in vals],
                capsize=3, color=["#999" if n == "ground_truth" else f"C{i}" for i, n in enumerate(names)])
         ax.set_xticks(range(len(vals)), [n.replace("ground_truth", "real") for n in names], rotation=30,
-                      ha="right", fontsize=7)
-        ax.set_title(f"{title} {'↑' if higher else '↓'}", fontsize=9)
+                      ha="right", fontsize=7, **PLAIN_TEXT)
+        ax.set_title(f"{title} {'↑' if higher else '↓'}", fontsize=9, **PLAIN_TEXT)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     fig.tight_layout()

@@ -15,6 +15,9 @@ Generated runs (written by the generator, a later stage) live in a folder
      "samples": [{"clip_id": "000123#0", "caption": "...", "tokens": ["a/DET", ...],
                   "file": "000123#0_r0.npy", "repeat": 0}, ...]}
 
+The name (or the folder's, without one) labels the run's rows and names its metrics file
+(``<eval.metrics_dir>/<name>.json``): a plain name (``party.names``), else the run is refused
+naming its ``index.json``; a sample's ``file`` is a relative path inside the run folder.
 One sample per clip and repeat; ``repeat`` > 0 are extra generations for
 MultiModality. ``tokens`` are optional (taken from the prepared index when
 the caption matches, else the caption's words tagged OTHER). Joint files
@@ -28,13 +31,14 @@ import json
 import logging
 from collections import defaultdict
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import torch
 
 from party.data import TextMotionDataset
 from party.data.context import DataContext
+from party.names import check_name
 from party.tokenizers.protocol import Codec, Tokenizer
 
 log = logging.getLogger(__name__)
@@ -227,7 +231,9 @@ class GeneratedSource:
             raise ValueError(f"{path}: format must be 'features' or 'joints', got {fmt!r}")
         if not meta.get("samples"):
             raise ValueError(f"{path}: no samples listed")
-        self.name = str(meta.get("name") or self.dir.name)
+        name = meta.get("name") or self.dir.name
+        self.name = check_name(name, "generated run name" + ("" if meta.get("name") else " (its folder's name)"),
+                               str(path))
         self.meta = {k: v for k, v in meta.items() if k != "samples"}
         toks = {(c["id"], cap["caption"]): cap["tokens"] for c in ctx.index.clips() for cap in c["captions"]}
         self.by_clip: dict[str, list[tuple[str, list | None, np.ndarray, bytes]]] = defaultdict(list)
@@ -235,6 +241,7 @@ class GeneratedSource:
             for k in ("clip_id", "caption", "file"):
                 if k not in s:
                     raise ValueError(f"{path}: a sample lacks '{k}': {s}")
+            _check_sample_file(s["file"], path)
             f = self._load(self.dir / s["file"], fmt, bool(meta.get("normalized", False)), ctx)
             if min_frames is not None and len(f) < min_frames:
                 raise ValueError(f"{self.dir / s['file']}: {len(f)} frames, fewer than one evaluator unit "
@@ -282,6 +289,13 @@ class GeneratedSource:
 
     def repeats(self, min_repeats: int) -> dict[str, list[np.ndarray]]:
         return {c: [f for _, _, f, _ in v] for c, v in self.by_clip.items() if len(v) >= min_repeats}
+
+
+def _check_sample_file(file, index: Path) -> None:
+    """A sample's ``file`` names a file inside the run folder: a relative path without ``..``."""
+    p = PurePosixPath(file) if isinstance(file, str) else None
+    if p is None or not file or p.is_absolute() or ".." in p.parts or "\\" in file:
+        raise ValueError(f"{index}: sample file {file!r} is not a relative path inside the run folder")
 
 
 def discover_generated(spec, generated_dir: str | Path) -> list[Path]:

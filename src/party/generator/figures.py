@@ -22,6 +22,8 @@ import lightning as L
 import numpy as np
 import torch
 
+from party.render import PLAIN_TEXT, plain_legend
+
 log = logging.getLogger(__name__)
 
 
@@ -52,16 +54,16 @@ def attention_figure(maps: Mapping[str, torch.Tensor], lengths: Mapping[str, int
     fig, axes = plt.subplots(1, 1 + len(parts), figsize=(4.2 * (1 + len(parts)), 4.0))
     ax = axes[0]
     ax.imshow(sa, cmap="viridis", aspect="auto")
-    ax.set_title("HPF self-attention")
-    ax.set_xticks(ticks, names, fontsize=7)
-    ax.set_yticks(ticks, names, fontsize=7)
+    ax.set_title("HPF self-attention", **PLAIN_TEXT)
+    ax.set_xticks(ticks, names, fontsize=7, **PLAIN_TEXT)
+    ax.set_yticks(ticks, names, fontsize=7, **PLAIN_TEXT)
     for p, n, ax in zip(parts, n_p, axes[1:]):
         ca = maps[p][0].float().mean(0)[:L_h, :n].cpu().numpy()
         ax.imshow(ca, cmap="viridis", aspect="auto")
-        ax.set_title(f"cross-attention {hol} -> {p}")
-        ax.set_xlabel(f"{p} token")
-        ax.set_ylabel(f"{hol} position")
-    fig.suptitle(title)
+        ax.set_title(f"cross-attention {hol} -> {p}", **PLAIN_TEXT)
+        ax.set_xlabel(f"{p} token", **PLAIN_TEXT)
+        ax.set_ylabel(f"{hol} position", **PLAIN_TEXT)
+    fig.suptitle(title, **PLAIN_TEXT)
     fig.tight_layout()
     return fig
 
@@ -76,11 +78,11 @@ def gate_figure(ratios: Mapping[str, Sequence[float]], title: str = ""):
     for k in range(K):
         ax.bar(np.arange(len(parts)) + (k - (K - 1) / 2) * width, [ratios[p][k] for p in parts], width,
                label=f"c'_{k + 1}")
-    ax.set_xticks(np.arange(len(parts)), parts)
-    ax.set_ylabel("gate selection ratio")
+    ax.set_xticks(np.arange(len(parts)), parts, **PLAIN_TEXT)
+    ax.set_ylabel("gate selection ratio", **PLAIN_TEXT)
     ax.set_ylim(0, 1)
-    ax.legend(fontsize=7, ncol=K)
-    ax.set_title(title or "PTG gate selection per part")
+    plain_legend(ax.legend(fontsize=7, ncol=K))
+    ax.set_title(title or "PTG gate selection per part", **PLAIN_TEXT)
     fig.tight_layout()
     return fig
 

@@ -122,5 +122,9 @@ def load_method(folder, map_location: str = "cpu", plugins: Iterable[str] = ()):
     ``generator/``), loaded by its family (``method.json``; older folders are recognised by
     the family that wrote them)."""
     from party.methods.store import read_family
+    from party.names import check_name
     load_plugins(plugins)
-    return family(read_family(folder, _FAMILIES.values())).load(folder, map_location)
+    trained = family(read_family(folder, _FAMILIES.values())).load(folder, map_location)
+    for s in [*trained.meta.get("streams", ()), *getattr(trained, "streams", ())]:   # <tokenizers>/<stream>/
+        check_name(s, "stream of the trained method", str(folder))
+    return trained

@@ -25,6 +25,7 @@ from party.evaluation.loading import efficiency
 from party.evaluation.parallel import protocol_inputs, protocol_workers, run_protocol_on, run_shared
 from party.evaluation.report import dvc_metrics, report
 from party.io import atomic_dir, write_json, write_text
+from party.names import check_name
 from party.stage import stage
 from party.training import resolve_device
 
@@ -65,6 +66,9 @@ def run(cfg: DictConfig, run_) -> dict:
                    + ", ".join(partial) + " clips.")
     tables = report(results, eff, switches, header, ec.large_batch_size, whole_stream=ctx.layout.whole_stream,
                     part_streams=ctx.layout.part_streams, subsets={k: d for k, (_, d) in subsets.items()})
+    means = dvc_metrics(results, ec.metrics_digits)
+    for source in means:                # file names (a generated run's name comes from its index.json)
+        check_name(source, "evaluation source", f"{ec.metrics_dir}/<source>.json")
     with atomic_dir(ec.out_dir) as tmp:
         write_json(tmp / "metrics.json", metrics)
         write_text(tmp / "tables.md", tables)
@@ -72,8 +76,8 @@ def run(cfg: DictConfig, run_) -> dict:
             write_json(tmp / "sc_reference.json", sc_ref.to_dict())
         write_report(tmp / "report.html", cfg, ctx, results, tables, generated)
         with atomic_dir(ec.metrics_dir) as mtmp:          # one folder, swapped in whole
-            for source, means in dvc_metrics(results, ec.metrics_digits).items():
-                write_json(mtmp / f"{source}.json", means)
+            for source, m in means.items():
+                write_json(mtmp / f"{source}.json", m)
     flat = log_metrics_flat(results)
     run_.log_metrics({k[: -len("/mean")]: v for k, v in flat.items() if k.endswith("/mean")})
     run_.log_metrics({k: v for k, v in log_metrics_flat(eff, "efficiency/").items()})

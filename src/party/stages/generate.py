@@ -83,6 +83,17 @@ def write_texts(gen, texts: list[str], frames, out: str | Path, formats, seed: i
     return rows
 
 
+def log_outputs(run_, rows: list[dict], out: str | Path) -> None:
+    """The files this run wrote (each text's files, ``generated.json``) as the run's ``generate/``
+    artifacts: not the whole ``out`` folder, which keeps earlier runs' files and, by default
+    (``outputs/generate``), Hydra's run folders with every earlier run's texts and overrides."""
+    for o in rows:
+        for k, v in o.items():
+            if k not in ("text", "frames"):
+                run_.log_file(v, "generate")
+    run_.log_file(Path(out) / "generated.json", "generate")
+
+
 def report_texts(rows: list[dict]) -> None:
     for o in rows:
         print(f"generate: {o['text']!r} ({o['frames']} frames) -> " + ", ".join(
@@ -107,7 +118,7 @@ def run(cfg, run_) -> dict:
         src = resolve_run(cfg, gc.run, Path(g.out_dir) / method)
         rows = write_texts(load(src, params=cfg), texts, frames, gc.out, list(gc.formats), progress=cfg.progress)
         report_texts(rows)
-        run_.log_file(gc.out, "generate")
+        log_outputs(run_, rows, gc.out)
         return {"texts": len(rows), "out": str(gc.out)}
     from party.generator.generate import generate_run
     summary = generate_run(cfg, method, Path(g.generated_dir) / method, cfg.progress)
@@ -188,7 +199,7 @@ def plain(argv: list[str]) -> int:
             rows = write_texts(load(model, params=cfg), texts, frames, out, formats, seed=a.seed,
                                progress=bool(cfg.progress))
             report_texts(rows)
-            run_.log_file(out, "generate")
+            log_outputs(run_, rows, out)
             return {"texts": len(rows), "out": str(out)}
 
         body(cfg)

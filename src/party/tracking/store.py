@@ -91,12 +91,38 @@ _LOCATION_COLUMNS = (("experiments", "artifact_location", "experiment_id"), ("ru
                      ("model_versions", "source", "rowid"), ("model_versions", "storage_location", "rowid"))
 
 
+def _location_path(value) -> tuple[str, Path] | None:
+    """(``"file"`` or ``"path"``, absolute local path) of a recorded artifact location; None for
+    anything else (a server's ``s3://``, ``mlflow-artifacts:``, a relative path)."""
+    if not isinstance(value, str):
+        return None
+    if value.startswith("file://"):
+        from urllib.parse import unquote, urlparse
+        p = unquote(urlparse(value).path)
+        return ("file", Path(p)) if p.startswith("/") else None
+    return ("path", Path(value)) if value.startswith("/") else None
+
+
+def _under(path: Path, root: Path) -> Path | None:
+    """``path`` relative to ``root`` when it lies under it (root itself excluded), else None."""
+    try:
+        rel = path.relative_to(root)
+    except ValueError:
+        return None
+    return rel if rel.parts else None
+
+
 def relocate_store(uri: str) -> int:
     """Point a moved or copied SQLite store at its own artifacts: MLflow records absolute
     artifact locations (``file:///old/clone/mlruns/artifacts/...``), so a clone moved elsewhere
-    would read from and write into the original's folder. Every location under the old store
-    folder is rewritten to this store's folder (``<db dir>``); locations elsewhere (a server's,
-    an artifact root configured on purpose) are left alone. Returns the rows changed."""
+    would read from and write into the original's folder.
+
+    Only the store's own previous folder is moved: a folder ``<old>`` holding an experiment's
+    root (``<old>/artifacts``, party's, or ``<old>/<id>``, MLflow's default) is the store's old
+    folder when the artifacts of a run recorded under it came along, i.e. ``<old>/<rest>`` is
+    found here as ``<db dir>/<rest>``. Its locations are then rewritten to this folder; every
+    other location (a server's, an artifact root configured on purpose elsewhere, whose runs'
+    files are still there and not here) is left as it is. Returns the rows changed."""
     import sqlite3
 
     db = _sqlite_path(uri)
@@ -108,29 +134,42 @@ def relocate_store(uri: str) -> int:
         tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
         if "experiments" not in tables:
             return 0
-        old_roots = set()
+        candidates = set()
         for (loc,) in con.execute("SELECT artifact_location FROM experiments"):
-            path = Path(loc[len("file://"):] if loc.startswith("file://") else loc)
-            if loc.startswith(("file://", "/")) and path.parent != new_root and \
-                    (path.name == "artifacts" or path.name.isdigit()):
-                old_roots.add(str(path.parent))
+            found = _location_path(loc)
+            if found and found[1].parent != new_root and (found[1].name == "artifacts" or found[1].name.isdigit()):
+                candidates.add(found[1].parent)
+        runs = [_location_path(u) for (u,) in con.execute("SELECT artifact_uri FROM runs")] \
+            if candidates and "runs" in tables else []
+        runs = [p for _, p in filter(None, runs)]
+        old_roots = {old for old in candidates
+                     if any((rel := _under(p, old)) is not None and (new_root / rel).is_dir() for p in runs)}
+        if candidates - old_roots:
+            log.debug("%s: artifact roots %s left as recorded (no run's artifacts of theirs are under %s)",
+                      db, ", ".join(sorted(map(str, candidates - old_roots))), new_root)
+        if not old_roots:
+            return 0
         changed = 0
         with con:
-            for old in sorted(old_roots, key=len, reverse=True):
-                for table, col, key in _LOCATION_COLUMNS:
-                    if table not in tables:
+            for table, col, key in _LOCATION_COLUMNS:
+                if table not in tables:
+                    continue
+                for k, value in con.execute(f"SELECT {key}, {col} FROM {table}").fetchall():
+                    found = _location_path(value)
+                    if not found:
                         continue
-                    rows = con.execute(f"SELECT {key}, {col} FROM {table}").fetchall()
-                    for k, value in rows:
-                        for prefix in (f"file://{old}/", f"{old}/"):
-                            if isinstance(value, str) and value.startswith(prefix):
-                                new = prefix.replace(old, str(new_root), 1) + value[len(prefix):]
-                                con.execute(f"UPDATE {table} SET {col}=? WHERE {key}=?", (new, k))
-                                changed += 1
-                                break
+                    kind, path = found
+                    for old in sorted(old_roots, key=lambda r: len(r.parts), reverse=True):
+                        rel = _under(path, old)
+                        if rel is not None:
+                            moved = new_root / rel
+                            new = moved.as_uri() if kind == "file" else str(moved)
+                            con.execute(f"UPDATE {table} SET {col}=? WHERE {key}=?", (new, k))
+                            changed += 1
+                            break
         if changed:
             log.warning("%s: moved from %s; %d artifact locations now point under %s",
-                        db, ", ".join(sorted(old_roots)), changed, new_root)
+                        db, ", ".join(sorted(map(str, old_roots))), changed, new_root)
         return changed
     finally:
         con.close()
