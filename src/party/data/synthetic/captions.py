@@ -330,7 +330,7 @@ def arms_part_text(a: ActionSpec, legs: ActionSpec) -> str:
         "punch": ("Both arms punch forward in turn from a guard position" if pl else
                   f"The {a.side} arm punches forward from a guard position"),
         "reach_forward": f"{S} extend{'' if pl else 's'} forward to reach out in front",
-        "arms_out": (f"Both arms stretch out to the sides at shoulder height" if pl else
+        "arms_out": ("Both arms stretch out to the sides at shoulder height" if pl else
                      f"The {a.side} arm stretches out to the side at shoulder height"),
         "throw": f"The {a.side} arm draws back over the shoulder and whips forward to throw",
         "point": f"The {a.side} arm extends forward to point",
