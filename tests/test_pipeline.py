@@ -10,6 +10,7 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import pytest
@@ -19,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf/experiment").glob("*.yaml"))
 STUBS = "tests/methods/stub_families.py"
-# planted through oc.env in a URL and as a bare value; it must reach no file of the run
-SECRET = "e2e-s3cr3t-5f0c9a"
+# planted through oc.env in a URL and as a bare value; it must reach no file of the run (made
+# here, so that no file of the copied project holds it)
+SECRET = f"e2e-{uuid.uuid4().hex}"
 
 
 def test_there_are_experiments_to_run():

@@ -975,10 +975,13 @@ def _yaml_scalar(s: str):
 
 
 def _plain(cfg, where: str) -> dict:
-    from party.secrets import scan
+    from party.secrets import defer_unset, scan
     try:
         node = cfg if isinstance(cfg, (DictConfig, ListConfig)) else OmegaConf.create(cfg)
         scan(node)                     # values read with oc.env are masked wherever they are logged
+        raw, unset = defer_unset(OmegaConf.to_container(node, resolve=False))
+        if unset:                      # only a read of such a value fails, naming the variable
+            node = OmegaConf.create(raw)
         plain = OmegaConf.to_container(node, resolve=True)
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", "") or ""

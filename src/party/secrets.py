@@ -51,6 +51,33 @@ def scan(cfg: Any) -> None:
         register(os.environ.get(name))
 
 
+_UNSET_REF = re.compile(r"(?<!\\)\$\{oc\.env:\s*([A-Za-z_][A-Za-z0-9_]*)\s*\}")
+
+
+def defer_unset(raw: Any) -> tuple[Any, set[str]]:
+    """(``raw`` with each ``${oc.env:NAME}`` whose variable is not set, and which gives no
+    default, escaped so that resolving the whole config keeps it as text, the names). A config
+    built from the result raises, naming the variable, only where that value is read: a process
+    that never reads it (a notebook, a stage that does not use the server) runs without it."""
+    missing: set[str] = set()
+
+    def esc(m: re.Match) -> str:
+        if m.group(1) in os.environ:
+            return m.group(0)
+        missing.add(m.group(1))
+        return "\\" + m.group(0)
+
+    def walk(node):
+        if isinstance(node, str):
+            return _UNSET_REF.sub(esc, node)
+        if isinstance(node, dict):
+            return {k: walk(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+    return walk(raw), missing
+
+
 def redact(text: Any) -> str:
     """``text`` with every registered secret, URL userinfo and credential query value masked."""
     text = str(text)

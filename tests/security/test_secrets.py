@@ -90,3 +90,15 @@ def test_a_failed_stage_logs_no_secret(tmp_path, secret_env, monkeypatch):
     arts = [p for p in (tmp_path / "mlruns").rglob("*") if p.is_file()]
     assert {p.name for p in arts} >= {"error.txt", "config.yaml"}
     assert not [p for p in arts if SECRET.encode() in p.read_bytes()]
+
+
+def test_a_process_without_the_variable_runs_until_it_reads_that_value(tmp_path, monkeypatch):
+    """A notebook or a stage that never reads the value loads params.yaml without the variable;
+    reading the value fails, naming the variable."""
+    monkeypatch.setenv("PARTY_TEST_SECRET", SECRET)
+    p = _params(tmp_path, URL)
+    monkeypatch.delenv("PARTY_TEST_SECRET")
+    cfg = load_params(p)
+    assert cfg.part_texts.backend and cfg.dataset.name
+    with pytest.raises(Exception, match="PARTY_TEST_SECRET"):
+        _ = cfg.part_texts.base_url
