@@ -14,6 +14,11 @@
 what a plain folder does not carry: the dataset's normalisation and part layout, the text
 embeddings or encoder, the tracking store of ``runs:/`` and ``models:/`` URIs and the method
 plug-ins. A registered package carries everything but the tracking store.
+
+The tokenizers and text embeddings a generator is loaded with must be those it was trained on
+(``party.provenance``): a difference is an error naming both digests and the command that
+retrains it; ``allow_mismatch=True`` (or ``generator.allow_mismatch``) lets it through with a
+warning, recorded on the active MLflow run as the tag ``party.allowed_mismatch``.
 """
 from __future__ import annotations
 
@@ -141,27 +146,32 @@ def _params(params):
     return load_params(params)
 
 
-def load(source: str | Path | None = None, *, params=None) -> Generator:
+def load(source: str | Path | None = None, *, params=None, allow_mismatch: bool | None = None) -> Generator:
     """The generator at ``source`` (a trained folder, a package folder, ``runs:/...`` or
     ``models:/<name>/<version>``; None: ``<generator.out_dir>/<generator.method>``), ready to
-    ``generate``. ``params``: a params.yaml path or a loaded config (default: the project's)."""
+    ``generate``. ``params``: a params.yaml path or a loaded config (default: the project's).
+    ``allow_mismatch``: load it with tokenizers or embeddings other than those it was trained on
+    (None: ``generator.allow_mismatch``)."""
+    from party import provenance
     from party.generator.package import is_package, load_package
     cfg = _params(params)
     g = cfg.generator
+    allow = bool(g.allow_mismatch if allow_mismatch is None else allow_mismatch)
     plugins = list(g.get("plugins") or ())
     folder = fetch(str(source), cfg) if source is not None else Path(g.out_dir) / str(g.method)
     if source is None and not folder.is_dir():
         raise FileNotFoundError(f"{folder}: no trained generator; run `party train_generator` or give a model")
     if is_package(folder):                       # a registered model: nothing else is read
         from party.generator.generate import encode_texts
-        trained, ctx, text_cfg, info = load_package(folder, plugins=plugins)
+        trained, ctx, text_cfg, info = load_package(folder, plugins=plugins, allow_mismatch=allow)
         return Generator(trained, ctx, lambda texts: encode_texts(text_cfg, info["encoder_id"], list(texts)),
                          g.generate, str(source))
     from party.data.context import load_context
     from party.generator.generate import embed_texts
     from party.methods import load_method
-    trained = load_method(folder, plugins=plugins)
+    trained = provenance.attach(load_method(folder, plugins=plugins), folder)
+    provenance.check_embeddings(trained, cfg.text.embeddings_dir, allow)
     ctx = load_context(cfg)
-    trained.bind(ctx)
+    trained.bind(ctx, allow_mismatch=allow)
     return Generator(trained, ctx, lambda texts: embed_texts(cfg, list(texts)), g.generate,
                      str(source if source is not None else folder))

@@ -1,6 +1,7 @@
 """How a stage's process ends, beside the stage skeleton (``party.stage``): SIGTERM turned into
-``Terminated`` so the run ends KILLED with the error recorded, and the runs a dead process left
-RUNNING marked KILLED at the next start (``close_orphans``, keyed by ``process_key``)."""
+``Terminated`` so the run ends KILLED with the error recorded, the runs a dead process left
+RUNNING marked KILLED when the store is next opened (``close_orphans``, keyed by ``process_key``),
+and the worker processes of a pool ending with the process that started them (``die_with_parent``)."""
 from __future__ import annotations
 
 import contextlib
@@ -26,13 +27,14 @@ def process_key(pid: int) -> str | None:
     return f"{pid}:{stat.rsplit(')', 1)[1].split()[19]}"     # field 22: start time in ticks
 
 
-def close_orphans(client, stage: str) -> list[str]:
+def close_orphans(client, stage: str | None, when: str | None = None) -> list[str]:
     """Mark KILLED the RUNNING runs in this store (any experiment, any stage) whose process, on
     this host, is gone (``kill -9``, the OOM killer, a crash the process could not report): the
-    next start of any stage (``stage``, named in the note it leaves) cleans up after it, so the
-    UI and ``search_runs`` never show a dead run as running. Runs of other hosts (multi-node), of
-    live processes, or without the ``party.process`` tag (older versions) are left alone.
-    Returns the run ids it closed."""
+    next start of any stage (``stage``, named in the note it leaves), or the next opening of the
+    store (``when`` says by what: ``party.tracking.store.close_orphans_once``), cleans up after
+    it, so the UI and ``search_runs`` never show a dead run as running. Runs of other hosts
+    (multi-node), of live processes, or without the ``party.process`` tag (older versions) are
+    left alone. Returns the run ids it closed."""
     import socket
 
     host = socket.gethostname()
@@ -47,13 +49,56 @@ def close_orphans(client, stage: str) -> list[str]:
             continue
         client.set_tag(r.info.run_id, "party.error",
                        f"process {pid} on {host} ended without closing this run (killed?); "
-                       f"marked KILLED when {stage} next started")
+                       f"marked KILLED {when or f'when {stage} next started'}")
         client.set_terminated(r.info.run_id, "KILLED")
         closed.append(r.info.run_id)
         named.append(f"{r.data.tags.get('party.stage', '?')} {r.info.run_id}")
     if closed:
         log.warning("marked %d orphaned run(s) KILLED: %s", len(closed), ", ".join(named))
     return closed
+
+
+PR_SET_PDEATHSIG = 1          # <linux/prctl.h>
+
+
+def die_with_parent(parent: int | None = None, poll_s: float = 1.0) -> None:
+    """Make this (child) process exit when ``parent`` (default: its parent now) dies, whatever
+    ends it: ``kill -9`` and the OOM killer included, which leave a pool no chance to stop its
+    workers, so they would wait for work for ever, holding their memory. The initializer of every
+    worker pool calls it (``initializer=die_with_parent, initargs=(os.getpid(),)``).
+
+    Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``, the kernel kills the child at once. It fires when
+    the *thread* that started the child ends, so pools are started from the thread that lives as
+    long as they do (a stage's main thread; ``ProcessPoolExecutor`` with ``spawn`` starts its
+    workers in the thread calling ``submit``). Everywhere, as a fallback: a daemon thread that
+    checks every ``poll_s`` seconds whether the parent is still the parent (``os.getppid``
+    changes when it dies) and ends the process with ``os._exit``. A parent already gone when
+    this runs ends the process at once."""
+    import signal
+    import sys
+    import threading
+    import time
+
+    parent = os.getppid() if parent is None else int(parent)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+                log.debug("prctl(PR_SET_PDEATHSIG) failed (errno %d); polling the parent instead",
+                          ctypes.get_errno())
+        except (OSError, AttributeError) as e:       # no libc / no prctl symbol: the poller does it
+            log.debug("prctl unavailable (%s); polling the parent instead", e)
+    if os.getppid() != parent:          # it died before the request (prctl does not look back)
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="party-die-with-parent", daemon=True).start()
 
 
 class Terminated(KeyboardInterrupt):

@@ -743,6 +743,8 @@ class GenGenerate:
     run: Optional[str] = _people_only(field(default=MISSING))
     out: str = _people_only(field(default=MISSING))
     formats: List[str] = _people_only(field(default=MISSING))
+    log_artifacts: str = _people_only(_choice("previews", "all", "none"))   # files logged into the run
+    previews: int = _people_only(_SOME())   # log_artifacts=previews: the GIF / MP4 of this many texts
 
 
 @dataclass
@@ -763,6 +765,7 @@ class Generator:
     out_dir: str = MISSING
     resume_dir: str = MISSING
     generated_dir: str = MISSING
+    allow_mismatch: bool = MISSING           # use inputs other than a model's recorded ones (party.provenance)
     model: GenModel = _group(GenModel)
     loss: GenLoss = _group(GenLoss)
     corruption: GenCorruption = _group(GenCorruption)
@@ -1008,6 +1011,7 @@ def validate(cfg, where: str = "config", *, partial: bool = False) -> DictConfig
             raise ConfigError(f"{where}: generator.plugins: {e}", "generator.plugins") from None
     _check(Config, plain, "", where, partial)
     _check_names(plain, where)
+    _check_known(plain, where)
     return OmegaConf.create(plain)
 
 
@@ -1055,3 +1059,45 @@ def _check_names(plain: Mapping, where: str) -> None:
             for k, items in node.items():
                 for i, v in enumerate(items if isinstance(items, (list, tuple)) else ()):
                     bad(_join(_join(dotted, k), i), v)
+
+
+# --------------------------------------------------------------------------- known choices
+
+#: ``evaluator.kind``: trained (``<evaluator.out_dir>/<stream>/finest.tar``) | reference (the published
+#: T2M checkpoint; ``party.evaluation.loading.load_evaluators``)
+EVALUATOR_KINDS = ("trained", "reference")
+
+
+def _check_known(plain: Mapping, where: str) -> None:
+    """Every key that picks a registered thing picks a known one, so composing refuses what no stage
+    can run: ``generator.method`` is a key of ``generator.methods`` (each entry's ``family`` is a
+    registered method family: checked with the entry's schema), ``vqvae.model.family`` and each
+    ``vqvae.tokenizers.<stream>.family`` a registered tokenizer family or an importable model class
+    (``party.tokenizers.vqvae.family_class``), ``evaluator.kind`` one of ``EVALUATOR_KINDS``. A
+    ``ConfigError`` names the key and lists the known ones (absent keys and ``???`` are left alone)."""
+    def at(dotted: str):
+        node: Any = plain
+        for k in dotted.split("."):
+            node = node.get(k) if isinstance(node, Mapping) else None
+        return None if _is_missing(node) else node
+
+    method, methods = at("generator.method"), at("generator.methods")
+    if method is not None and isinstance(methods, Mapping) and method not in methods:
+        _fail(where, "generator.method", f"{_short(method)} is not a method of generator.methods "
+                                         f"(known: {', '.join(map(str, methods))})")
+    families = {"vqvae.model.family": at("vqvae.model.family")}
+    tokenizers = at("vqvae.tokenizers")
+    for stream, over in (tokenizers.items() if isinstance(tokenizers, Mapping) else ()):
+        if isinstance(over, Mapping):
+            families[f"vqvae.tokenizers.{stream}.family"] = at(f"vqvae.tokenizers.{stream}.family")
+    for key, fam in families.items():
+        if fam is not None:
+            from party.tokenizers.vqvae import family_class
+            try:
+                family_class(str(fam))
+            except (KeyError, TypeError) as e:
+                _fail(where, key, " ".join(str(e.args[0]).split()))       # one line (an import error has several)
+    kind = at("evaluator.kind")
+    if kind is not None and kind not in EVALUATOR_KINDS:
+        _fail(where, "evaluator.kind", f"{_short(kind)} is not a known evaluator kind "
+                                       f"(known: {', '.join(EVALUATOR_KINDS)})")

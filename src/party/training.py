@@ -17,6 +17,13 @@ everything that changes what a step computes plus the data's identity
 same settings continues from ``last.ckpt`` there and a changed dataset never resumes
 an old run. ``hold_resume_dir(folder)`` keeps a second run with the same key (a sweep and a
 ``party repro`` started side by side) out of that folder while the first trains there.
+
+Budgets (``max_steps``, not in the key) are what they say (``plan_resume``): a larger
+``max_steps`` continues the folder's ``last.ckpt``; a checkpoint trained past ``max_steps`` is
+never reused as the shorter run. That run starts from the furthest checkpoint at or below its
+budget (a shorter budget's ``steps-<N>/last.ckpt``, kept beside), else from scratch, and
+checkpoints to ``steps-<max_steps>/last.ckpt``, so the longer run's ``last.ckpt`` is kept. The
+export records the steps trained (``steps_trained``).
 """
 from __future__ import annotations
 
@@ -306,17 +313,11 @@ def hold_resume_dir(folder: str | os.PathLike):
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
-def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.resume") -> Path | None:
-    """``folder/last.ckpt`` when resuming is on and it exists, else None.
-
-    The file is checked first (a torch checkpoint is a zip: its directory and every member's
-    CRC): a truncated or damaged one raises ValueError naming the file and the two ways out
-    (delete it, or ``<key>=false``), instead of torch's bare ``PytorchStreamReader failed``."""
+def _checked(ckpt: Path, key: str) -> Path:
+    """``ckpt``, checked (a torch checkpoint is a zip: its directory and every member's CRC): a
+    truncated or damaged one raises ValueError naming the file and the two ways out (delete it,
+    or ``<key>=false``), instead of torch's bare ``PytorchStreamReader failed``."""
     import zipfile
-
-    ckpt = Path(folder) / "last.ckpt"
-    if not (enabled and ckpt.exists()):
-        return None
     try:
         with zipfile.ZipFile(ckpt) as z:
             bad = z.testzip()
@@ -326,6 +327,59 @@ def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.res
         raise ValueError(f"{ckpt}: the rolling checkpoint to resume from is truncated or damaged "
                          f"({bad}); delete it to start this training over, or set {key}=false")
     return ckpt
+
+
+def checkpoint_step(ckpt: str | os.PathLike) -> int:
+    """The optimizer step a Lightning checkpoint was saved at (its ``global_step``; 0 if none)."""
+    obj = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
+    return int(obj.get("global_step", 0)) if isinstance(obj, Mapping) else 0
+
+
+class ResumePlan:
+    """Where a run resumes from and where it checkpoints (``plan_resume``).
+
+    ``resume_from``: the checkpoint to continue (None: from scratch), saved at ``resume_step``;
+    ``ckpt``: this run's rolling checkpoint; ``past``: the checkpoints trained past the budget
+    (path -> step), not reused."""
+
+    def __init__(self, resume_from: Path | None, resume_step: int, ckpt: Path, past: Mapping[Path, int] = ()):
+        self.resume_from, self.resume_step, self.ckpt, self.past = resume_from, int(resume_step), ckpt, dict(past)
+
+
+def plan_resume(folder: str | os.PathLike, enabled: bool, key: str = "<group>.train.resume",
+                max_steps: int | None = None) -> ResumePlan:
+    """Which checkpoint of ``folder`` a run with budget ``max_steps`` resumes from, and where it
+    checkpoints.
+
+    Resuming off: from scratch into ``folder/last.ckpt``. Without ``max_steps``: ``last.ckpt``
+    when it exists. With it, the candidates are ``last.ckpt`` and the kept shorter budgets'
+    ``steps-<N>/last.ckpt``: the run resumes from the furthest one saved at or below
+    ``max_steps`` (a larger budget continues a finished run) and never from one trained past it
+    (it would export a longer run under a shorter budget); the run checkpoints to ``last.ckpt``
+    unless that one is past the budget, then to ``steps-<max_steps>/last.ckpt`` (the longer run
+    stays resumable). A damaged candidate raises ValueError (``_checked``)."""
+    folder = Path(folder)
+    last = folder / "last.ckpt"
+    if not enabled:
+        return ResumePlan(None, 0, last)
+    if max_steps is None:
+        return ResumePlan(_checked(last, key) if last.exists() else None, 0, last)
+    cands = [c for c in (last, *sorted(folder.glob("steps-*/last.ckpt"))) if c.exists()]
+    steps = {c: checkpoint_step(_checked(c, key)) for c in cands}
+    fits = {c: s for c, s in steps.items() if s <= int(max_steps)}
+    past = {c: s for c, s in steps.items() if s > int(max_steps)}
+    start = max(fits, key=fits.get) if fits else None
+    ckpt = last if last not in past else folder / f"steps-{int(max_steps)}" / "last.ckpt"
+    return ResumePlan(start, fits.get(start, 0), ckpt, past)
+
+
+def resume_checkpoint(folder: Path, enabled: bool, key: str = "<group>.train.resume",
+                      max_steps: int | None = None) -> Path | None:
+    """The checkpoint to resume from (``plan_resume``): ``folder/last.ckpt`` when resuming is on
+    and it exists (with ``max_steps``: never one trained past it), else None. A truncated or
+    damaged checkpoint raises ValueError naming the file and the two ways out (delete it, or
+    ``<key>=false``)."""
+    return plan_resume(folder, enabled, key, max_steps).resume_from
 
 
 # --------------------------------------------------------------------------- the recipe
@@ -343,33 +397,54 @@ class TrainingSession:
     """The bookkeeping of one resumable training around its ``trainer.fit``:
 
         with TrainingSession(run, root, name, key, resume=t.resume, flag="generator.train.resume",
-                             tags={"party.method": name}) as s:
+                             tags={"party.method": name}, max_steps=t.max_steps) as s:
             trainer = build_trainer(..., callbacks=[AtomicCheckpoint(s.ckpt, every)], default_root_dir=str(s.dir))
             trainer.fit(lit, train, val, ckpt_path=s.resume_from, weights_only=True)
             s.export(out_dir, write, ["model.pt", "metrics.json"], "generator", log_checkpoint=True)
 
     Entering holds ``<root>/<name>/<key>/.lock`` (``hold_resume_dir``), finds the checkpoint to
-    resume from (``resume_checkpoint``), tags the run (``party.resume_key``, ``party.resumed``
-    and ``tags``) and links a resumed run to its earlier ones. ``export`` builds ``out_dir``
-    under a temp name (the rolling ``last.ckpt`` and what ``write(tmp)`` writes), swaps it in
-    whole and logs the files named to the run."""
+    resume from and the one to write (``plan_resume``: with ``max_steps``, never a checkpoint
+    trained past the budget; which one is logged), tags the run (``party.resume_key``,
+    ``party.resumed``, ``party.resume_step`` and ``tags``) and links a resumed run to its earlier
+    ones. ``export`` builds ``out_dir`` under a temp name (the rolling checkpoint as
+    ``last.ckpt`` and what ``write(tmp)`` writes), swaps it in whole and logs the files named to
+    the run."""
 
-    def __init__(self, run, root, name: str, key: str, resume: bool, flag: str, tags: Mapping[str, Any] = ()):
+    def __init__(self, run, root, name: str, key: str, resume: bool, flag: str, tags: Mapping[str, Any] = (),
+                 max_steps: int | None = None):
         self.run, self.key, self.flag, self.enabled = run, key, flag, bool(resume)
+        self.max_steps = None if max_steps is None else int(max_steps)
         self.dir = resume_dir(root, name, key)
         self.ckpt = self.dir / "last.ckpt"
         self.tags = dict(tags)
         self.resume_from: Path | None = None
+        self.resume_step = 0
         self._hold = None
+
+    def _plan(self) -> None:
+        plan = plan_resume(self.dir, self.enabled, self.flag, self.max_steps)
+        self.resume_from, self.resume_step, self.ckpt = plan.resume_from, plan.resume_step, plan.ckpt
+        if plan.past:
+            budget = f"{self.flag.rsplit('.', 1)[0]}.max_steps={self.max_steps}"
+            start = (f"continuing the {self.resume_step}-step checkpoint {self.resume_from}"
+                     if self.resume_from is not None else "training from scratch")
+            past = ", ".join(f"{c} (trained {s} steps)" for c, s in plan.past.items())
+            log.warning("%s: past %s, not reused as this shorter run: %s, checkpointing to %s (the longer "
+                        "checkpoint is kept)", past, budget, start, self.ckpt)
+        elif self.resume_from is not None:
+            log.info("%s: resuming at step %d of %s", self.resume_from, self.resume_step,
+                     self.max_steps if self.max_steps is not None else "?")
+        self.ckpt.parent.mkdir(parents=True, exist_ok=True)
 
     def __enter__(self) -> "TrainingSession":
         from party import tracking
         self._hold = hold_resume_dir(self.dir)
         self._hold.__enter__()
         try:
-            self.resume_from = resume_checkpoint(self.dir, self.enabled, self.flag)
+            self._plan()
             self.run.set_tags({**self.tags, "party.resume_key": self.key,
-                               "party.resumed": str(self.resume_from is not None).lower()})
+                               "party.resumed": str(self.resume_from is not None).lower(),
+                               "party.resume_step": str(self.resume_step)})
             if self.resume_from is not None:
                 tracking.link_resumed(self.run, self.key)
         except BaseException:
@@ -381,8 +456,9 @@ class TrainingSession:
         return bool(self._hold.__exit__(*exc))
 
     def export(self, out_dir, write, log_files: Iterable[str], artifact_path: str, log_checkpoint: bool) -> Path:
-        """``out_dir`` whole: ``last.ckpt`` plus what ``write(tmp)`` writes; then the files
-        ``log_files`` (and ``last.ckpt`` with ``log_checkpoint``) logged under ``artifact_path``."""
+        """``out_dir`` whole: the rolling checkpoint (``ckpt``) as ``last.ckpt`` plus what ``write(tmp)``
+        writes; then the files ``log_files`` (and ``last.ckpt`` with ``log_checkpoint``) logged under
+        ``artifact_path``."""
         import shutil
 
         from party.io import atomic_dir

@@ -98,6 +98,7 @@ def efficiency(cfg: DictConfig, evaluators: dict, tokenizers: dict, generated: l
         for s, src in tokenizers.items():
             inputs = src.ait_inputs(sample, e.ait_samples)
             out["tokenizers"][s] = {"params": src.n_params(), "window": src.window,
+                                    "steps": (getattr(src.tok, "meta", None) or {}).get("steps_trained"),
                                     **measure_ait(src.reconstruct_stream, inputs, e.ait_samples,
                                                   e.ait_warmup)}
     for g in generated:

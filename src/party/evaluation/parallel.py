@@ -23,12 +23,15 @@ what it needs itself (``spawn``: nothing of the parent's torch state is inherite
 from __future__ import annotations
 
 import logging
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from party.lifecycle import die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +139,9 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
     log.info("evaluation protocol in %d processes (%s), %d thread(s) each", workers,
              " | ".join(", ".join(sh) for sh in shares), threads)
     container = OmegaConf.to_container(cfg, resolve=True)
-    ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+    # workers end with this process, whatever kills it (kill -9 included): a worker holds ~2 GB
+    ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=die_with_parent,
+                             initargs=(os.getpid(),))
     try:
         futures = [ex.submit(_share, container, sh, streams, i == 0, {t for t, o in owner.items() if o == i},
                              threads, i) for i, sh in enumerate(shares)]

@@ -83,11 +83,12 @@ def table4(results: Mapping, efficiency: Mapping) -> str:
         fid = d.get(stream, {}).get("fid")
         params = e.get("params")
         ait = e.get("ait_ms")
-        rows.append([stream, e.get("window", "-"), f"{params / 1e6:.2f}M" if params else "-", fmt(fid),
-                     fmt(d.get("reconstruction", {}).get("mpjpe_mm"), 1), f"{ait:.1f} ms" if ait else "-"])
+        rows.append([stream, e.get("window", "-"), f"{params / 1e6:.2f}M" if params else "-",
+                     str(e.get("steps") or "-"), fmt(fid), fmt(d.get("reconstruction", {}).get("mpjpe_mm"), 1),
+                     f"{ait:.1f} ms" if ait else "-"])
+    header = ["Stream", "Window", "# Params", "Steps", "FID ↓", "MPJPE (mm) ↓", "AIT (encode+decode)"]
     return ("### Table 4: tokenizer reconstruction (FID with the stream's evaluator; MPJPE in mm, root-aligned "
-            "per frame)\n\n" + _table(["Stream", "Window", "# Params", "FID ↓", "MPJPE (mm) ↓", "AIT (encode+decode)"],
-                                       rows))
+            "per frame; Steps: the steps trained, from model.pt)\n\n" + _table(header, rows))
 
 
 def switch_names(switches: Mapping[str, Mapping]) -> list[str]:

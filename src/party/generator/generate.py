@@ -4,7 +4,10 @@
   ``party.evaluation.sources``): one sample per clip of ``generator.generate.split`` and
   repeat, its first caption, raw features from the method (``TrainedMethod.sample``), the
   method's own index fields (ParTY's switches) and efficiency figures (parameters, average
-  inference time per sample at batch 1).
+  inference time per sample at batch 1). The tokenizers, token stores and text embeddings it
+  reads must be those the method was trained on (``party.provenance``; ``generator.allow_mismatch``
+  lets a difference through, recorded in ``index.json`` as ``allowed_mismatch``); ``index.json``
+  records the generator folder's digest (``built_from``).
 - ``generate_batches``: every text through a bound ``TrainedMethod``, in seeded batches.
 - ``embed_texts`` / ``encode_texts``: texts to the embeddings a method was trained on.
 
@@ -54,20 +57,23 @@ def generation_ait(method, text_emb: np.ndarray, lengths, gcfg, n: int, warmup: 
 
 def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     """Write ``out_dir`` (index.json + one .npy per sample) for ``evaluate``; returns the summary."""
+    from party import provenance
     from party.data.context import load_context
     from party.methods import load_method, method_config
     from party.text.store import EmbeddingStore
 
     g, gc = cfg.generator, cfg.generator.generate
     entry = method_config(g, method)
-    trained = load_method(Path(g.out_dir) / method, plugins=g.get("plugins") or ())
+    folder = Path(g.out_dir) / method
+    trained = provenance.attach(load_method(folder, plugins=g.get("plugins") or ()), folder)
+    provenance.check_embeddings(trained, cfg.text.embeddings_dir, bool(g.allow_mismatch))
     ctx = load_context(cfg)
     clips = ctx.index.clips(gc.split)
     if not clips:
         raise ValueError(f"{ctx.index.path}: split {gc.split!r} has no clips (generator.generate.split)")
     rows = [(c["id"], c["captions"][0]["caption"], r) for c in clips for r in range(gc.repeats)]
     emb = EmbeddingStore.open(cfg.text.embeddings_dir).get([cap for _, cap, _ in rows])
-    trained.bind(ctx, g.tokenizers_dir)
+    trained.bind(ctx, g.tokenizers_dir, allow_mismatch=bool(g.allow_mismatch))
     lengths = trained.gt_lengths(cfg, [cid for cid, _, _ in rows]) if gc.lengths == "gt" else None
     t0 = time.time()
     feats = generate_batches(trained, emb, lengths, gc, progress)
@@ -77,7 +83,11 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     counts = trained.param_counts()
     index = {"name": method, "format": "features", "normalized": False, "method": method,
              "family": str(entry.family), **trained.index_fields(entry),
-             "params": counts["total"], "param_counts": counts, "ait_ms": round(ait, 3), "samples": []}
+             "params": counts["total"], "param_counts": counts, "ait_ms": round(ait, 3),
+             provenance.KEY: {"generator": provenance.entry("generator", folder)}}
+    if getattr(trained, "allowed_mismatch", None):
+        index["allowed_mismatch"] = list(trained.allowed_mismatch)
+    index["samples"] = []
     with atomic_dir(out_dir) as tmp:
         for i, ((cid, cap, r), f) in enumerate(zip(rows, feats)):
             name = f"{i:05d}.npy"

@@ -6,6 +6,10 @@
     <package>/tokenizers/<s>/model.pt the tokenizers that decode its codes (token methods)
     <package>/stats/Mean.npy, Std.npy the dataset's normalisation statistics
 
+The tokenizers copied in must be those the method was trained on, checked when the package is
+built and again when it is loaded (``party.provenance``: the digests in ``generator/method.json``;
+``generator.allow_mismatch`` lets a difference through).
+
 ``party register`` builds it from ``<generator.out_dir>/<method>`` and registers it as one
 model version (``models:/<generator.registry.name>/<version>``); ``party generate
 "a text" --model models:/<name>/<version>`` (or ``party.load``) downloads it and generates with nothing
@@ -28,6 +32,7 @@ FORMAT = "party.package/1"
 
 def build_package(cfg, method: str, out: Path) -> dict:
     """Write the package of ``<generator.out_dir>/<method>`` to ``out``; returns package.json."""
+    from party import provenance
     from party.data.context import load_context
     from party.methods import load_method, method_config
     from party.text.encoders import pinned_precision
@@ -35,7 +40,7 @@ def build_package(cfg, method: str, out: Path) -> dict:
 
     g = cfg.generator
     src = Path(g.out_dir) / method
-    trained = load_method(src, plugins=g.get("plugins") or ())
+    trained = provenance.attach(load_method(src, plugins=g.get("plugins") or ()), src)
     if not trained.reads_text:
         raise ValueError(f"{src}: this baseline reads no text; register a trained method")
     ctx = load_context(cfg)
@@ -45,6 +50,8 @@ def build_package(cfg, method: str, out: Path) -> dict:
         if f.is_file() and f.name not in ("last.ckpt", "config.json"):
             shutil.copy2(f, out / "generator" / f.name)
     streams = trained.tokenizer_streams(ctx.layout.whole_stream)
+    provenance.check_generator(trained, {f"tokenizer/{s}": ("tokenizer", Path(trained.meta["tokenizers_dir"]) / s)
+                                         for s in streams}, bool(g.allow_mismatch))
     for s in streams:
         (out / "tokenizers" / s).mkdir(parents=True)
         shutil.copy2(Path(trained.meta["tokenizers_dir"]) / s / "model.pt", out / "tokenizers" / s / "model.pt")
@@ -66,10 +73,12 @@ def is_package(path: str | Path) -> bool:
     return (Path(path) / "package.json").is_file()
 
 
-def load_package(path: str | Path, plugins=()):
+def load_package(path: str | Path, plugins=(), allow_mismatch: bool = False):
     """(trained method bound to the package's data context and tokenizers, context, text encoder
     config, info) of a package. A plug-in family's modules come from the caller (``plugins``:
-    the local ``generator.plugins``), never from the package's files."""
+    the local ``generator.plugins``), never from the package's files. The tokenizers must be the
+    ones the method recorded (``party.provenance``), unless ``allow_mismatch``."""
+    from party import provenance
     from party.data.context import DataContext
     from party.data.datasets import MotionStore, Normalizer
     from party.data.index import Index
@@ -85,7 +94,8 @@ def load_package(path: str | Path, plugins=()):
     index = Index(d["name"], str(path / "stats"), d["fps"], d["feat_dim"], d["n_joints"], d["skeleton"], [])
     ctx = DataContext(index, MotionStore(index.root, d["feat_dim"]), Normalizer.load(path / "stats", d["feat_dim"]),
                       PartLayout.from_config(info["parts"], d["n_joints"]), info["parts"])
-    trained = load_method(path / "generator", plugins=plugins).bind(ctx, path / "tokenizers")
+    trained = provenance.attach(load_method(path / "generator", plugins=plugins), path / "generator")
+    trained.bind(ctx, path / "tokenizers", allow_mismatch=allow_mismatch)
     # packages written before text.precision existed embedded in fp32
     text = OmegaConf.create({"precision": "32-true", **info["text"]})
     return trained, ctx, text, info

@@ -4,7 +4,8 @@ method's family, which calls this for a neural token model).
 ``train_token_generator(cfg, method, out_dir, run, family)`` builds the aligned multi-stream
 data (``party.generator.data``), the family's model of ``generator.methods.<method>``, trains
 it with the shared trainer builder (``trainer.*``) and exports ``out_dir/``: ``method.json``
-(the family), ``model.pt`` (the family's ``save``), ``last.ckpt``, ``config.json``,
+(the family, and the digests of the tokenizers, token stores and text embeddings it trained on:
+``party.provenance``), ``model.pt`` (the family's ``save``), ``last.ckpt``, ``config.json``,
 ``metrics.json`` (final validation losses and next-token accuracies, and the same for the
 untrained model of the same spec: the trivial baseline). The folder is swapped in whole at
 the end.
@@ -14,7 +15,9 @@ Resumable like the tokenizers (``party.training``): rolling checkpoints under
 family's ``key_config`` (for ParTY: model, loss and the method's switches), the optimiser,
 corruption and the training settings that change a step (``party.schema.step_keys``: every
 key not marked ``_off_step``), the seed and the data's identity (index, normalisation, token
-stores, embeddings).
+stores, embeddings). ``max_steps`` is not in the hash: a larger budget continues a finished run, a
+checkpoint trained past it is never exported as the shorter run (``party.training.plan_resume``);
+``config.json`` and ``model.pt``'s meta record ``steps_trained``.
 """
 from __future__ import annotations
 
@@ -92,6 +95,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
     family builds the model (``build_model``), names what defines it (``key_config``), saves it
     (``save``) and wraps it for sampling (``wrap``); this recipe seeds, reads the token data,
     resumes, trains, validates against the untrained weights and exports ``out_dir`` whole."""
+    from party import provenance
     from party.methods.store import write_method_json
     from party.schema import GenTrain, step_keys
 
@@ -99,6 +103,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
     t = g.train
     seed = cfg.seed
     start_training(seed, t.threads)
+    built_from = provenance.generator_inputs(cfg)         # each store checked against its tokenizer first
     train_ds, val_ds = build_generator_data(cfg, "train"), build_generator_data(cfg, t.val_split)
     model = family.build_model(cfg, method, train_ds)
     val_loader = _loader(val_ds, t.batch_size, False, 0, seed)
@@ -114,14 +119,16 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
                      _identity(cfg))
     described = family.describe(cfg, method)          # e.g. ParTY's kind
     tags = {"party.method": method, "party.family": family.name, **{f"party.{k}": str(v) for k, v in described.items()}}
-    with TrainingSession(run, g.resume_dir, method, key, t.resume, "generator.train.resume", tags) as session:
+    with TrainingSession(run, g.resume_dir, method, key, t.resume, "generator.train.resume", tags,
+                         max_steps=t.max_steps) as session:
         counts = model.param_counts()
         run.log_params({"n_params": counts["total"], "train_samples": len(train_ds), "val_samples": len(val_ds),
                         "precision": precision})
         t0 = time.time()
         meta = {"method": method, "resume_key": key, "streams": list(train_ds.streams),
                 "windows": train_ds.windows, "codebook_sizes": train_ds.codebook_sizes, "text_dim": train_ds.dim,
-                "tokenizers_dir": str(g.tokenizers_dir), "encoder": str(cfg.text.embeddings_dir)}
+                "tokenizers_dir": str(g.tokenizers_dir), "encoder": str(cfg.text.embeddings_dir),
+                provenance.KEY: built_from}
         figures = _figures(cfg, run, val_ds, family.wrap(model, meta))
         trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
                                 callbacks=[AtomicCheckpoint(session.ckpt, t.ckpt_every), *figures, *(callbacks or [])],
@@ -137,6 +144,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
         fit_resumable(trainer, lit, _loader(train_ds, t.batch_size, True, t.num_workers, seed, t.bucket_pool),
                       val_loader, resume)
         final = _evaluate(model, val_loader)
+        meta["steps_trained"] = int(trainer.global_step)         # the budget the exported weights had
         metrics = {"method": method, "family": family.name, **described,
                    "step": int(trainer.global_step), "params": counts,
                    "final": final, "untrained": untrained, "precision": precision,
@@ -147,7 +155,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
         if trainer.is_global_zero:
             def write(tmp: Path) -> None:
                 family.save(model, tmp / "model.pt", meta)
-                write_method_json(tmp, family.name, method)
+                write_method_json(tmp, family.name, method, built_from)
                 write_json(tmp / "config.json", {"method": method, **plain(g), "meta": meta})
                 write_json(tmp / "metrics.json", metrics)
             session.export(out_dir, write, ["method.json", "model.pt", "metrics.json"], "generator",

@@ -14,7 +14,8 @@ A **family** (``MethodFamily`` subclass, registered with ``party.methods.registe
 - ``recognizes(folder)``: whether a folder without ``method.json`` was written by it.
 
 A **trained method** (``TrainedMethod``) is what generation uses: ``bind`` it to the data
-context (normalisation, part layout) and the tokenizers folder where it decodes codes, then
+context (normalisation, part layout) and the tokenizers folder where it decodes codes (checked
+against the digests recorded in ``meta["built_from"]`` at training, ``party.provenance``), then
 ``sample(text_emb, lengths, gcfg, generator)`` gives raw features (T, D) per row. Lengths are
 the method's own business: ``gt_lengths`` (from the ground-truth clips) and ``frame_lengths``
 (from requested frame counts) return a dict of (B,) tensors that the stages slice per batch
@@ -34,6 +35,8 @@ class TrainedMethod:
 
     #: whether its output depends on the text (the trivial baselines' does not)
     reads_text: ClassVar[bool] = True
+    #: the folder it was loaded from (``party.provenance.attach``), None for a model in training
+    source: str | None = None
 
     def __init__(self, meta: Mapping[str, Any]):
         self.meta = dict(meta)
@@ -43,9 +46,11 @@ class TrainedMethod:
         return str(self.meta.get("method", "?"))
 
     # --------------------------------------------------------------- decoding context
-    def bind(self, ctx, tokenizers_dir=None) -> "TrainedMethod":
+    def bind(self, ctx, tokenizers_dir=None, allow_mismatch: bool = False) -> "TrainedMethod":
         """Prepare decoding against the data context ``ctx`` (``party.data.context.DataContext``)
-        and, for token methods, the tokenizers folder (None: the one the method was trained with)."""
+        and, for token methods, the tokenizers folder (None: the one the method was trained with),
+        whose tokenizers must be the ones it recorded (``party.provenance``; ``allow_mismatch``:
+        a warning instead of the error)."""
         self.ctx = ctx
         return self
 

@@ -1,7 +1,11 @@
 """A trained method's folder: which family wrote it, and the weights files of neural methods.
 
-    <generator.out_dir>/<method>/method.json   {"format": "party.method/1", "family", "method"}
+    <generator.out_dir>/<method>/method.json   {"format": "party.method/1", "family", "method",
+                                                "built_from"}
     <generator.out_dir>/<method>/...           the family's own files (model.pt, metrics.json, ...)
+
+``built_from`` (when the family records it): the digests of what the method was trained on
+(tokenizers, token stores, text embeddings; ``party.provenance``), checked when it generates.
 
 ``save_weights`` / ``load_weights``: a ``model.pt`` holding a format tag, the model's spec
 (a plain dict), metadata and the weights, as plain containers and tensors, loaded with
@@ -19,8 +23,23 @@ FORMAT = "party.method/1"
 MANIFEST = "method.json"
 
 
-def write_method_json(folder: str | Path, family: str, method: str) -> None:
-    write_json(Path(folder) / MANIFEST, {"format": FORMAT, "family": family, "method": method})
+def write_method_json(folder: str | Path, family: str, method: str, built_from: Mapping | None = None) -> None:
+    """``method.json``; ``built_from``: the record of what the method was trained on
+    (``party.provenance.record`` / ``generator_inputs``)."""
+    info = {"format": FORMAT, "family": family, "method": method}
+    if built_from is not None:
+        info["built_from"] = dict(built_from)
+    write_json(Path(folder) / MANIFEST, info)
+
+
+def read_built_from(folder: str | Path) -> dict | None:
+    """The ``built_from`` record of a method folder's ``method.json`` (None: none recorded)."""
+    manifest = Path(folder) / MANIFEST
+    if not manifest.is_file():
+        return None
+    info = read_json(manifest, "party train_generator", "a method manifest")
+    rec = info.get("built_from") if isinstance(info, dict) else None
+    return dict(rec) if isinstance(rec, dict) else None
 
 
 def read_family(folder: str | Path, families: Iterable[type]) -> str:
@@ -79,14 +98,17 @@ def weights_format(path: str | Path) -> str | None:
     return obj.get("format") if isinstance(obj, dict) else None
 
 
-def export_method(out_dir: str | Path, family: str, method: str, metrics: Mapping, run, write=None) -> None:
-    """A method's folder, swapped in whole: what ``write(tmp)`` writes, ``method.json`` and
-    ``metrics.json``; the run tagged with the method and its family. For families that train
-    without the Lightning recipe (baselines, closed-form models)."""
+def export_method(out_dir: str | Path, family: str, method: str, metrics: Mapping, run, write=None,
+                  built_from: Mapping | None = None) -> None:
+    """A method's folder, swapped in whole: what ``write(tmp)`` writes, ``method.json`` (with
+    ``built_from``, the record of what it was trained on: ``party.provenance.generator_inputs(cfg)``
+    for a family that decodes with the tokenizers) and ``metrics.json``; the run tagged with the
+    method and its family. For families that train without the Lightning recipe (baselines,
+    closed-form models)."""
     from party.io import atomic_dir
     with atomic_dir(out_dir) as tmp:
         if write is not None:
             write(tmp)
-        write_method_json(tmp, family, method)
+        write_method_json(tmp, family, method, built_from)
         write_json(tmp / "metrics.json", dict(metrics))
     run.set_tags({"party.method": method, "party.family": family})

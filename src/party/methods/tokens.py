@@ -83,24 +83,39 @@ def frame_code_lengths(frames: Sequence[int | None] | None, windows: Mapping[str
 class TokenMethod(TrainedMethod):
     """A trained token model: ``model.generate`` gives codes of ``streams``, decoded by the
     stream tokenizers. ``meta`` holds ``streams`` (every stream of the token stores, whole first),
-    ``windows``, ``codebook_sizes`` and ``tokenizers_dir``."""
+    ``windows``, ``codebook_sizes``, ``tokenizers_dir`` and ``built_from`` (the digests of the
+    tokenizers, token stores and text embeddings it was trained on; older models: none)."""
 
     def __init__(self, model, meta: Mapping, streams: Sequence[str], max_tokens: int):
         super().__init__(meta)
         self.model, self.streams, self.max_tokens = model, list(streams), int(max_tokens)
         self.decode = None
 
-    def bind(self, ctx, tokenizers_dir=None) -> "TokenMethod":
-        super().bind(ctx, tokenizers_dir)
-        self.decode = TokenDecoder(tokenizers_dir or self.meta["tokenizers_dir"], ctx, self.streams)
+    def bind(self, ctx, tokenizers_dir=None, allow_mismatch: bool = False) -> "TokenMethod":
+        """Decode with the tokenizers of ``tokenizers_dir`` (None: ``meta["tokenizers_dir"]``), each
+        the one the method was trained with (``party.provenance``: else a ``MismatchError`` naming
+        both digests, unless ``allow_mismatch``)."""
+        from party import provenance
+        super().bind(ctx, tokenizers_dir, allow_mismatch)
+        folder = Path(tokenizers_dir or self.meta["tokenizers_dir"])
+        streams = decode_streams(self.streams, ctx.layout.whole_stream)
+        provenance.check_generator(self, {f"tokenizer/{s}": ("tokenizer", folder / s) for s in streams},
+                                   allow_mismatch)
+        self.decode = TokenDecoder(folder, ctx, self.streams)
         return self
 
     def tokenizer_streams(self, whole_stream: str) -> list[str]:
         return decode_streams(self.streams, whole_stream)
 
     def gt_lengths(self, cfg, clip_ids: Sequence[str]) -> dict[str, torch.Tensor]:
+        """Code counts of the ground-truth clips, from the token stores the method was trained on
+        (``party.provenance``: else a ``MismatchError``, unless ``generator.allow_mismatch``)."""
+        from party import provenance
         from party.generator.data import open_token_stores
-        stores = open_token_stores(cfg.generator.tokens_dir, [s for s in self.meta["streams"] if s in self.streams])
+        streams = [s for s in self.meta["streams"] if s in self.streams]
+        provenance.check_generator(self, {f"tokens/{s}": ("tokens", Path(cfg.generator.tokens_dir) / s)
+                                          for s in streams}, bool(cfg.generator.allow_mismatch))
+        stores = open_token_stores(cfg.generator.tokens_dir, streams)
         return clip_code_lengths(stores, clip_ids, self.meta["windows"], self.max_tokens)
 
     def frame_lengths(self, frames):

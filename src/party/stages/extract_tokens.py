@@ -1,7 +1,8 @@
 """``party extract_tokens``: code sequences of every motion, for every tokenizer.
 
 For each stream in ``vqvae.streams`` loads ``<vqvae.out_dir>/<stream>/model.pt``
-and writes ``<vqvae.tokens_dir>/<stream>/`` (see ``party.tokenizers.tokens``):
+and writes ``<vqvae.tokens_dir>/<stream>/`` (see ``party.tokenizers.tokens``; its meta records
+the tokenizer's digest, ``party.provenance``):
 one entry per clip of the prepared index (all splits; mirrors are motions of
 their own in the index) and one per whole motion file. Sequences are encoded
 whole, in batches of equal token count (no padding between sequences), in eval
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from party import provenance
 from party.io import atomic_dir
 from party.stage import stage
 from party.data.context import load_stream_data
@@ -111,7 +113,8 @@ def run(cfg, run_) -> dict:
             entries, codes, keys = tokenize_stream(tok, data, vq.eval.batch_size, cfg.progress)
             meta = {"stream": stream, "window": tok.window, "tail": tok.tail,
                     "codebook_size": tok.codebook_size, "levels": tok.levels, "family": tok.family,
-                    "dataset": data.index.dataset, "tokenizer": str(path / "model.pt")}
+                    "dataset": data.index.dataset, "tokenizer": str(path / "model.pt"),
+                    provenance.KEY: {f"tokenizer/{stream}": provenance.entry("tokenizer", path)}}
             meta = write_token_store(out_root / stream, zip(entries, codes), keys, meta)
             used = len(np.unique(np.concatenate(codes))) if codes else 0
             summary[stream] = {"entries": meta["n_entries"], "keys": len(keys), "codes": meta["n_codes_total"],

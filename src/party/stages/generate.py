@@ -23,6 +23,7 @@ As a pipeline stage (Hydra overrides on params.yaml), two uses:
 """
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -68,30 +69,153 @@ def resolve_run(cfg, spec: str | None, default: Path) -> Path:
         raise FileNotFoundError(f"generator.generate.run={spec}: {str(e).split(': ', 1)[-1]}") from e
 
 
+class OutputFolderError(ValueError):
+    """``out`` cannot take the files (a file, not writable): found before the model runs."""
+
+
+#: the files ``party.generator.export.write_outputs`` writes per text, by format
+_SUFFIXES = {"npy": (".feats.npy", ".joints.npy"), "gif": (".gif",), "mp4": (".mp4",), "bvh": (".bvh",)}
+
+
+def check_out(out: str | Path, texts: list[str], formats) -> list[Path]:
+    """Before the model runs: ``out`` must be a folder this process can write into, or one it can
+    create; an unknown format fails here too. An existing folder is written into: files of the
+    same names (an earlier run's texts) are replaced, with a warning, others are kept. Returns the
+    files that will be replaced. Raises ``OutputFolderError`` naming the folder."""
+    import sys
+
+    from party.generator.export import _check_formats, slug
+    formats = _check_formats(formats)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputFolderError(f"{out}: the output folder is a file (give another folder: --out or "
+                                f"generator.generate.out)")
+    base = out
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise OutputFolderError(f"{out}: the output folder cannot be created: {base} is a file")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise OutputFolderError(f"{out}: the output folder is not writable" if base == out else
+                                f"{out}: the output folder cannot be created: {base} is not writable")
+    names = [slug(t, i) + x for i, t in enumerate(texts) for f in formats for x in _SUFFIXES[f]]
+    replaced = [out / n for n in names if (out / n).exists()]
+    if replaced:
+        print(f"generate: {out}: replacing {len(replaced)} file(s) of an earlier run ("
+              + ", ".join(p.name for p in replaced[:3]) + (", ..." if len(replaced) > 3 else "") + ")",
+              file=sys.stderr)
+    return replaced
+
+
 def write_texts(gen, texts: list[str], frames, out: str | Path, formats, seed: int | None = None,
                 progress: bool = False) -> list[dict]:
     """Each text through ``gen`` (``party.api.Generator``) -> files under ``out`` (features, joints,
     GIF titled with the text, BVH) and ``out/generated.json``."""
-    from party.generator.export import slug
     from party.io import write_json
     motions = gen.generate(texts, frames, seed=seed, progress=progress)
-    rows = []
-    for i, m in enumerate(motions):
-        paths = m.save(out, slug(m.text, i), formats)
-        rows.append({"text": m.text, "frames": m.frames, **{k: str(v) for k, v in paths.items()}})
+    rows = write_motions(motions, out, formats, progress)
     write_json(Path(out) / "generated.json", rows)
     return rows
 
 
-def log_outputs(run_, rows: list[dict], out: str | Path) -> None:
-    """The files this run wrote (each text's files, ``generated.json``) as the run's ``generate/``
-    artifacts: not the whole ``out`` folder, which keeps earlier runs' files and, by default
-    (``outputs/generate``), Hydra's run folders with every earlier run's texts and overrides."""
-    for o in rows:
-        for k, v in o.items():
-            if k not in ("text", "frames"):
-                run_.log_file(v, "generate")
-    run_.log_file(Path(out) / "generated.json", "generate")
+def _warm() -> int:
+    """A writer process's first task: the imports (torch among them), so it is ready."""
+    import party.generator.export  # noqa: F401
+    return os.getpid()
+
+
+def _write(out: str, name: str, motion, formats: tuple[str, ...]) -> dict:
+    return motion.save(out, name, formats)
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def write_motions(motions, out: str | Path, formats, progress: bool = False) -> list[dict]:
+    """Each motion's files under ``out`` (``Motion.save``: named ``slug(text, i)``); -> one row per
+    motion, in order: ``{"text", "frames", <kind>: path}``. A progress bar (stderr) counts texts
+    and files when ``progress``.
+
+    Rendering a GIF or MP4 with Matplotlib is CPU-bound (about 1 s a text, the rest 0.03 s), and
+    threads do not help it; so with videos to write and more than one core, writer processes
+    (``spawn``, one per core but this one) take texts too, this process writing from the front
+    of the list and they from the back. They take texts only once started (a few seconds of
+    imports), so a handful of texts is never slower than writing them here."""
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing import get_context
+
+    from tqdm import tqdm
+
+    from party.generator.export import _check_formats, slug
+    from party.lifecycle import die_with_parent
+    formats = _check_formats(formats)
+    jobs = [(slug(m.text, i), m) for i, m in enumerate(motions)]
+    paths: list[dict | None] = [None] * len(jobs)
+    helpers = min(_cores() - 1, len(jobs) - 1) if {"gif", "mp4"} & set(formats) else 0
+    bar = tqdm(total=len(jobs), desc=f"write {out}", unit="text", disable=not progress)
+    files = 0
+
+    def done(i: int, written: dict) -> None:
+        nonlocal files
+        paths[i] = written
+        files += len(written)
+        bar.set_postfix(files=files, refresh=False)
+        bar.update()
+
+    todo = deque(range(len(jobs)))
+    pool = ProcessPoolExecutor(helpers, mp_context=get_context("spawn"), initializer=die_with_parent,
+                               initargs=(os.getpid(),)) if helpers > 0 else None
+    warm = [pool.submit(_warm) for _ in range(helpers)] if pool else []
+    running: dict = {}
+    try:
+        while todo or running:
+            ready = sum(f.done() and f.exception() is None for f in warm)
+            while todo and len(running) < 2 * ready:            # a task running, one queued, per process
+                i = todo.pop()
+                running[pool.submit(_write, str(out), jobs[i][0], jobs[i][1], formats)] = i
+            if todo:
+                i = todo.popleft()
+                done(i, _write(str(out), jobs[i][0], jobs[i][1], formats))
+            elif running:
+                wait(running, return_when=FIRST_COMPLETED)
+            for f in [f for f in running if f.done()]:
+                done(running.pop(f), f.result())
+    finally:
+        bar.close()
+        if pool:
+            for p in list((getattr(pool, "_processes", None) or {}).values()):   # idle, or still importing
+                p.terminate()
+            pool.shutdown(wait=True, cancel_futures=True)
+    return [{"text": m.text, "frames": m.frames, **{k: str(v) for k, v in w.items()}}
+            for (_, m), w in zip(jobs, paths)]
+
+
+def log_outputs(run_, rows: list[dict], out: str | Path, artifacts: str = "all", previews: int = 0) -> int:
+    """The files this run wrote as the run's ``generate/`` artifacts: not the whole ``out``
+    folder, which keeps earlier runs' files and, by default (``outputs/generate``), Hydra's run
+    folders with every earlier run's texts and overrides. ``artifacts``
+    (``generator.generate.log_artifacts``): ``all`` every file; ``previews`` ``generated.json``,
+    the ``.npy`` files (features, joints) and the GIF / MP4 of the first ``previews`` texts;
+    ``none`` nothing. Says what it left out; returns the number of files logged."""
+    if artifacts not in ("all", "previews", "none"):
+        raise ValueError(f"generator.generate.log_artifacts={artifacts!r}: one of all, previews, none")
+    index = Path(out) / "generated.json"
+    every = [v for o in rows for k, v in o.items() if k not in ("text", "frames")] + [str(index)]
+    if artifacts == "all":
+        chosen = every
+    elif artifacts == "none":
+        chosen = []
+    else:
+        chosen = [v for n, o in enumerate(rows) for k, v in o.items()
+                  if k in ("feats", "joints") or (k in ("gif", "mp4") and n < previews)] + [str(index)]
+    for f in chosen:
+        run_.log_file(f, "generate")
+    if len(chosen) < len(every) and getattr(run_.info, "run_id", None):
+        print(f"generate: {len(chosen)} of {len(every)} files logged as the run's artifacts "
+              f"(generator.generate.log_artifacts={artifacts}, previews={previews}); all are under {out}")
+    return len(chosen)
 
 
 def report_texts(rows: list[dict]) -> None:
@@ -113,12 +237,13 @@ def run(cfg, run_) -> dict:
         from party.api import load
         from party.methods import method_config
         texts, frames = read_texts(gc)
+        check_out(gc.out, texts, list(gc.formats))            # before the model: a bad folder fails now
         if not gc.run:
             method_config(g, method)
         src = resolve_run(cfg, gc.run, Path(g.out_dir) / method)
         rows = write_texts(load(src, params=cfg), texts, frames, gc.out, list(gc.formats), progress=cfg.progress)
         report_texts(rows)
-        log_outputs(run_, rows, gc.out)
+        log_outputs(run_, rows, gc.out, str(gc.log_artifacts), int(gc.previews))
         return {"texts": len(rows), "out": str(gc.out)}
     from party.generator.generate import generate_run
     summary = generate_run(cfg, method, Path(g.generated_dir) / method, cfg.progress)
@@ -129,7 +254,7 @@ def run(cfg, run_) -> dict:
 
 # --------------------------------------------------------------------------- the plain command
 
-OPTIONS = ("--frames", "--model", "--out", "--formats", "--seed", "--params")
+OPTIONS = ("--frames", "--model", "--out", "--formats", "--seed", "--params", "--allow-mismatch")
 _OVERRIDE = re.compile(r"^[+~]?[A-Za-z_][\w./@-]*=")
 
 
@@ -160,6 +285,8 @@ def _parser():
     p.add_argument("--formats", metavar="F[,F...]", help="of npy, gif, mp4, bvh (default: generator.generate.formats)")
     p.add_argument("--seed", type=int, help="sampling seed (default: generator.generate.seed)")
     p.add_argument("--params", metavar="FILE", help="the project's params.yaml (default: $PARTY_PARAMS or ./params.yaml)")
+    p.add_argument("--allow-mismatch", action="store_true", help="generate even with tokenizers or text embeddings "
+                   "other than those the model was trained on (a warning, and the run's tag party.allowed_mismatch)")
     return p
 
 
@@ -196,12 +323,14 @@ def plain(argv: list[str]) -> int:
                tags={"party.model": str(model or f"{cfg.generator.out_dir}/{cfg.generator.method}")})
         def body(cfg, run_) -> dict:
             from party.api import load
-            rows = write_texts(load(model, params=cfg), texts, frames, out, formats, seed=a.seed,
+            rows = write_texts(load(model, params=cfg, allow_mismatch=a.allow_mismatch or None), texts, frames,
+                               out, formats, seed=a.seed,
                                progress=bool(cfg.progress))
             report_texts(rows)
-            log_outputs(run_, rows, out)
+            log_outputs(run_, rows, out, str(gc.log_artifacts), int(gc.previews))
             return {"texts": len(rows), "out": str(out)}
 
+        check_out(out, texts, formats)                        # before the model and the run
         body(cfg)
     except (ValueError, FileNotFoundError, KeyError, ImportError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)

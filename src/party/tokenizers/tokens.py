@@ -17,6 +17,10 @@ was dropped (``crop``) or padded (``pad``)).
 as (N,) and ``get`` returns (n,); residual / hierarchical quantizers (Q > 1) store
 (N, Q) and ``get`` returns (n, Q) (level 0 first). Stores written before ``levels``
 existed are Q = 1. ``length``/``offset``/``n_codes_total`` count tokens (rows).
+
+``meta.built_from`` (``party.provenance``): the digest of the tokenizer that wrote the codes,
+``{"tokenizer/<stream>": {"kind", "path", "sha256"}}``; ``train_generator`` checks it against
+the tokenizer it records for decoding. Stores written before it existed carry none.
 Nothing here unpickles: ``np.load(allow_pickle=False)`` and JSON only.
 """
 from __future__ import annotations
@@ -83,6 +87,14 @@ class TokenStore:
         """Codes (n,) int64 of a clip id or motion name; (n, Q) when ``levels`` = Q > 1."""
         e = self.entry(key)
         return np.asarray(self.codes[e["offset"]:e["offset"] + e["length"]], dtype=np.int64)
+
+
+def store_meta(root: str | Path) -> dict:
+    """A store's ``meta`` (its ``index.json``), without reading the codes."""
+    index = read_json(Path(root) / "index.json", "party extract_tokens")
+    if not isinstance(index, dict) or not isinstance(index.get("meta"), dict):
+        raise ValueError(f"{Path(root) / 'index.json'}: not a token store index (no meta); rerun `party extract_tokens`")
+    return index["meta"]
 
 
 def _levels(meta: Mapping) -> int:

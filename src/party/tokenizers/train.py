@@ -11,9 +11,11 @@ Resumable (``party.training``): checkpoints go every ``train.ckpt_every`` iterat
 a killed run, rerun with the same settings, continues from its last checkpoint; a
 finished run rerun only re-exports. The hash covers everything that changes what a
 step computes (the keys of ``vqvae.train`` not marked ``_off_step`` in ``party.schema``) and
-the data's identity, not ``max_steps``: raising ``max_steps`` continues a finished run. The
-run's bookkeeping (seed, lock, resume, export, logging) is ``party.training``'s recipe,
-shared with the generators.
+the data's identity, not ``max_steps``: raising ``max_steps`` continues a finished run; a
+checkpoint trained past ``max_steps`` is never exported as the shorter run (that run trains from
+scratch or from a kept shorter checkpoint, ``party.training.plan_resume``). ``config.json`` and
+``model.pt``'s meta record ``steps_trained``. The run's bookkeeping (seed, lock, resume, export,
+logging) is ``party.training``'s recipe, shared with the generators.
 """
 from __future__ import annotations
 
@@ -78,7 +80,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     key = resume_key(scfg, {"stream": stream, "seed": seed, "in_dim": data.in_dim, **precision_identity(precision),
                             **data_identity(data.index.path, data.index.root)})
     with TrainingSession(run, cfg.vqvae.resume_dir, stream, key, t["resume"], "vqvae.train.resume",
-                         tags={"party.stream": stream}) as session:
+                         tags={"party.stream": stream}, max_steps=t["max_steps"]) as session:
         n_params = count_params(model)
         t0 = time.time()
         run.log_params({"n_params": n_params, "train_crop_frames": crop, "precision": precision,
@@ -110,10 +112,12 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
         run.set_tags({"party.tokenizer_status": diag["status"]})
         if trainer.is_global_zero:
             model.eval()
+            tok.meta["steps_trained"] = int(trainer.global_step)       # the budget the weights had
 
             def write(tmp: Path) -> None:
                 save_tokenizer(tok, tmp / "model.pt")
-                write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg, "meta": tok.meta})
+                write_json(tmp / "config.json", {"stream": stream, "resume_key": key, **scfg,
+                                                 "steps_trained": int(trainer.global_step), "meta": tok.meta})
                 write_json(tmp / "metrics.json", metrics)
             session.export(out_dir, write, ["model.pt", "metrics.json", "config.json"], "tokenizer",
                            t["log_checkpoint"])

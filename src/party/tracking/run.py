@@ -9,7 +9,7 @@ from typing import Any, Iterator, Mapping
 
 from party.lifecycle import _SIGNALLED, close_orphans, process_key
 from party.tracking.log import NullRun, _config_yaml, _RunMethods, flatten_config, is_rank_zero
-from party.tracking.store import _experiment_id, _set_tracking_uri, _tcfg, tracking_uri
+from party.tracking.store import _ORPHANS_CLOSED, _experiment_id, _set_tracking_uri, _tcfg, resolve_uri
 
 
 # files every documented workflow changes (generated or written by the pipeline itself):
@@ -85,7 +85,8 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
 
     import mlflow
 
-    uri = tracking_uri(cfg)
+    uri = resolve_uri(cfg)
+    _ORPHANS_CLOSED.add(uri)     # closed below at every start, the note naming this stage
     _set_tracking_uri(mlflow, uri)
     exp_id = _experiment_id(t["experiment"], uri)
     mlflow.set_experiment(experiment_id=exp_id)

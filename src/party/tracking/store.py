@@ -1,6 +1,7 @@
 """The MLflow store: where it is (``tracking_uri``), its artifact root, the experiment of the
-project (created once, under a lock shared by processes), and a copied store pointed back at
-its own artifacts (``relocate_store``)."""
+project (created once, under a lock shared by processes), a copied store pointed back at
+its own artifacts (``relocate_store``), and the runs of dead processes marked KILLED when a
+process first opens the store (``close_orphans_once``)."""
 from __future__ import annotations
 
 import contextlib
@@ -48,8 +49,8 @@ def _set_tracking_uri(mlflow, uri: str) -> None:
         os.environ["MLFLOW_TRACKING_URI"] = before
 
 
-def tracking_uri(cfg) -> str:
-    """``$MLFLOW_TRACKING_URI`` > ``tracking.uri`` > ``sqlite:///<abs dir>/mlflow.db``."""
+def resolve_uri(cfg) -> str:
+    """``$MLFLOW_TRACKING_URI`` > ``tracking.uri`` > ``sqlite:///<abs dir>/mlflow.db`` (nothing opened)."""
     env = os.environ.get("MLFLOW_TRACKING_URI")
     if env:
         return env
@@ -57,6 +58,53 @@ def tracking_uri(cfg) -> str:
     if uri:
         return str(uri)
     return f"sqlite:///{tracking_dir(cfg) / 'mlflow.db'}"
+
+
+def tracking_uri(cfg) -> str:
+    """The store of ``cfg`` (``resolve_uri``), the way party code opens it: the first time in a
+    process, the runs a dead process left RUNNING there are marked KILLED (``close_orphans_once``),
+    so whatever reads the store next (a stage, ``party.load``, the notebooks) sees them ended."""
+    uri = resolve_uri(cfg)
+    close_orphans_once(uri)
+    return uri
+
+
+#: stores this process has looked at for runs left RUNNING by dead processes
+_ORPHANS_CLOSED: set[str] = set()
+
+
+def close_orphans_once(uri: str, when: str | None = None) -> list[str]:
+    """Mark KILLED the runs a dead process of this host left RUNNING in the local SQLite store at
+    ``uri`` (``party.lifecycle.close_orphans``), once per process and store: one query. A store
+    that does not exist yet is not created, and no server is contacted (a stage's start closes
+    orphans there). ``when`` ends the note left on the run (default: the store was next opened,
+    by this process). A failure is a warning, never the caller's error. Returns the closed run ids."""
+    if uri in _ORPHANS_CLOSED:
+        return []
+    _ORPHANS_CLOSED.add(uri)
+    db = _sqlite_path(uri)
+    if db is None or not db.is_file():
+        return []
+    import sqlite3
+    import sys
+
+    try:
+        con = sqlite3.connect(db)
+        try:
+            ready = con.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='runs'").fetchone()
+        finally:
+            con.close()
+        if not ready:
+            return []
+        import mlflow
+
+        from party.lifecycle import close_orphans
+        prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+        return close_orphans(mlflow.MlflowClient(uri), None,
+                             when or f"when the store was next opened (process {os.getpid()}, {prog})")
+    except Exception as e:  # noqa: BLE001 - a reader of the store must not fail for this
+        log.warning("%s: could not look for runs left RUNNING by dead processes: %s", db, e)
+        return []
 
 
 def _sqlite_path(uri: str) -> Path | None:
@@ -122,12 +170,21 @@ def relocate_store(uri: str) -> int:
     folder when the artifacts of a run recorded under it came along, i.e. ``<old>/<rest>`` is
     found here as ``<db dir>/<rest>``. Its locations are then rewritten to this folder; every
     other location (a server's, an artifact root configured on purpose elsewhere, whose runs'
-    files are still there and not here) is left as it is. Returns the rows changed."""
-    import sqlite3
-
+    files are still there and not here) is left as it is. Returns the rows changed. Opening the
+    store this way (``scripts/mlflow_ui.sh`` does) also ends the runs of dead processes
+    (``close_orphans_once``)."""
     db = _sqlite_path(uri)
     if db is None or not db.exists():
         return 0
+    try:
+        return _relocate(db)
+    finally:     # scripts/mlflow_ui.sh opens the store through this: runs of dead processes end
+        close_orphans_once(uri)
+
+
+def _relocate(db: Path) -> int:
+    import sqlite3
+
     new_root = db.parent.resolve()
     con = sqlite3.connect(db)
     try:

@@ -113,8 +113,12 @@ def assign_splits(specs: list[MotionSpec], S, seed: int) -> dict[str, str]:
 _W: dict = {}
 
 
-def _init_worker(ds_container: dict, root: str) -> None:
+def _init_worker(ds_container: dict, root: str, parent: int | None = None) -> None:
+    """A worker's state; in a pool (``parent``: the pid that started it) it ends with its parent."""
     from party.motion.skeleton import get_skeleton
+    if parent is not None:
+        from party.lifecycle import die_with_parent
+        die_with_parent(parent)
     _W["ds"] = OmegaConf.create(ds_container)
     _W["root"] = Path(root)
     _W["skel"] = get_skeleton("t2m")
@@ -202,7 +206,7 @@ def write_synthetic_dataset(dataset_cfg, out_root, progress: bool = True) -> dic
                 bar.update()
         else:
             ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ctx.Pool(workers, initializer=_init_worker, initargs=(container, str(tmp))) as pool:
+            with ctx.Pool(workers, initializer=_init_worker, initargs=(container, str(tmp), os.getpid())) as pool:
                 for r in pool.imap(_process, specs, chunksize=8):
                     results.append(r)
                     bar.update()

@@ -63,6 +63,7 @@ class RandomCodesFamily(MethodFamily):
     def train(cls, cfg, method: str, out_dir, run, callbacks=None) -> dict:
         from party.generator.data import open_token_stores
         from party.io import write_json
+        from party import provenance
         from party.methods.store import export_method
         g = cfg.generator
         stores = open_token_stores(g.tokens_dir, g.streams)
@@ -71,7 +72,8 @@ class RandomCodesFamily(MethodFamily):
                 "codebook_sizes": {s: int(st.meta["codebook_size"]) for s, st in stores.items()},
                 "tokenizers_dir": str(g.tokenizers_dir), "max_tokens": int(g.model.max_tokens)}
         metrics = {"method": method, "family": cls.name, "params": {"total": 0}}
-        export_method(out_dir, cls.name, method, metrics, run, lambda tmp: write_json(tmp / BASELINE, meta))
+        export_method(out_dir, cls.name, method, metrics, run, lambda tmp: write_json(tmp / BASELINE, meta),
+                      built_from=provenance.generator_inputs(cfg))
         print(f"train_generator[{method}]: trivial baseline (uniform random whole-body codes), nothing to train")
         return metrics
 
