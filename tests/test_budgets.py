@@ -199,3 +199,14 @@ def test_a_sweep_over_budgets_reports_each_budget(tiny_ds, tmp_path):
     for label, steps in (("s4", 4), ("s2", 2)):
         conf = json.loads((tmp_path / "abl" / "budgets" / "points" / label / "config.json").read_text())
         assert conf["steps_trained"] == steps
+
+
+def test_efficiency_table_shows_each_models_steps():
+    from party.evaluation.report import efficiency_table
+    md = efficiency_table({"evaluators": {"holistic": 2e6},
+                           "tokenizers": {"arms": {"params": 1e6, "ait_ms": 1.0, "steps": 300}},
+                           "generated": {"party": {"params": 8e6, "ait_ms": 20.0, "steps_trained": 1800},
+                                         "random": {"params": 0, "ait_ms": 0.1}}})
+    assert "| Model | # Params | AIT | Steps |" in md
+    assert "| tokenizer (arms) | 1.00M | 1.0 ms | 300 |" in md
+    assert "| generator (party) | 8.00M | 20.0 ms | 1800 |" in md and "| generator (random) | - | 0.1 ms | - |" in md

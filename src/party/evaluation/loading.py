@@ -102,7 +102,7 @@ def efficiency(cfg: DictConfig, evaluators: dict, tokenizers: dict, generated: l
                                     **measure_ait(src.reconstruct_stream, inputs, e.ait_samples,
                                                   e.ait_warmup)}
     for g in generated:
-        out["generated"][g.name] = {k: g.meta[k] for k in ("params", "ait_ms") if k in g.meta}
+        out["generated"][g.name] = {k: g.meta[k] for k in ("params", "ait_ms", "steps_trained") if k in g.meta}
     return out
 
 

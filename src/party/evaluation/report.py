@@ -109,13 +109,17 @@ def table5(results: Mapping, switches: Mapping[str, Mapping], whole_stream: str)
 
 
 def efficiency_table(efficiency: Mapping) -> str:
-    rows = [[f"evaluator ({s})", f"{p / 1e6:.2f}M", "-"] for s, p in efficiency.get("evaluators", {}).items()]
-    rows += [[f"tokenizer ({s})", f"{e['params'] / 1e6:.2f}M" if e.get("params") else "-",
-              f"{e['ait_ms']:.1f} ms" if e.get("ait_ms") else "-"] for s, e in efficiency.get("tokenizers", {}).items()]
-    rows += [[f"generator ({s})", f"{e['params'] / 1e6:.2f}M" if e.get("params") else "-",
-              f"{e['ait_ms']:.1f} ms" if e.get("ait_ms") else "-"] for s, e in efficiency.get("generated", {}).items()]
-    return "### Efficiency: parameters and average inference time per sample\n\n" + _table(
-        ["Model", "# Params", "AIT"], rows)
+    """Parameters, average inference time and the steps each model was trained (``steps_trained``
+    of its export; "-" for models exported without it and for trivial baselines)."""
+    def row(model: str, e: Mapping, steps_key: str) -> list[str]:
+        steps = e.get(steps_key)
+        return [model, f"{e['params'] / 1e6:.2f}M" if e.get("params") else "-",
+                f"{e['ait_ms']:.1f} ms" if e.get("ait_ms") else "-", str(steps) if steps is not None else "-"]
+    rows = [[f"evaluator ({s})", f"{p / 1e6:.2f}M", "-", "-"] for s, p in efficiency.get("evaluators", {}).items()]
+    rows += [row(f"tokenizer ({s})", e, "steps") for s, e in efficiency.get("tokenizers", {}).items()]
+    rows += [row(f"generator ({s})", e, "steps_trained") for s, e in efficiency.get("generated", {}).items()]
+    return "### Efficiency: parameters, average inference time per sample and steps trained\n\n" + _table(
+        ["Model", "# Params", "AIT", "Steps"], rows)
 
 
 def subset_table(results: Mapping, subset: str, streams: Sequence[str], description: str) -> str:

@@ -84,6 +84,7 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     index = {"name": method, "format": "features", "normalized": False, "method": method,
              "family": str(entry.family), **trained.index_fields(entry),
              "params": counts["total"], "param_counts": counts, "ait_ms": round(ait, 3),
+             "steps_trained": trained.meta.get("steps_trained"),
              provenance.KEY: {"generator": provenance.entry("generator", folder)}}
     if getattr(trained, "allowed_mismatch", None):
         index["allowed_mismatch"] = list(trained.allowed_mismatch)
