@@ -237,3 +237,24 @@ def test_a_generator_without_a_record_loads_with_one_warning(copy, caplog):
     warned = [r.getMessage() for r in caplog.records if "records no digests" in r.getMessage()]
     assert warned == [(f"generator {folder} records no digests of what it was built from (written before records "
                        "existed): its inputs are not checked; rebuild it to record them")]
+
+
+def test_evaluate_refuses_a_generated_run_whose_generator_was_retrained(copy):
+    """The generated run's index.json records its generator; a generator changed since is refused
+    when evaluate loads the run (naming both digests and the command that regenerates it), and let
+    through with allow_mismatch."""
+    from party import provenance
+    from party.data.context import load_context
+    from party.evaluation.sources import GeneratedSource
+    from party.generator.generate import generate_run
+
+    root, cfg = copy
+    run = root / "generated" / METHOD
+    generate_run(cfg, METHOD, run, False)
+    ctx = load_context(cfg)
+    assert GeneratedSource(run, ctx).name == METHOD                 # unchanged generator: loads
+    (root / "generators" / METHOD / "metrics.json").write_text('{"retrained": true}')
+    with pytest.raises(provenance.MismatchError, match=rf"generator is not the one the generated run {run} was "
+                                                        rf"built from.*party generate generator.method={METHOD}"):
+        GeneratedSource(run, ctx)
+    assert GeneratedSource(run, ctx, allow_mismatch=True).name == METHOD

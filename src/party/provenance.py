@@ -17,7 +17,7 @@ same bytes under another folder digest the same, so a package's copies match the
 | ``tokenizer`` | ``<stream>/model.pt`` (weights, config, meta) | a token store's ``index.json`` (``extract_tokens``), a generator's ``method.json`` and ``model.pt`` meta | ``train_generator`` (each store against the tokenizer it records), generation (``TrainedMethod.bind``) |
 | ``tokens`` | ``<stream>/index.json``, ``codes.npy`` | a generator's record | generation at ground-truth lengths (``TokenMethod.gt_lengths``) |
 | ``embeddings`` | ``<embeddings_dir>/<encoder id>/`` ``embeddings.npy``, ``keys.json``, ``meta.json`` | a generator's record | ``generate_run``, ``party.load`` |
-| ``generator`` | every file of its folder but ``last.ckpt`` | a generated run's ``index.json`` | - |
+| ``generator`` | every file of its folder but ``last.ckpt`` | a generated run's ``index.json`` | ``evaluate`` loading the run (``check_generated``) |
 | ``evaluator`` | ``<stream>/finest.tar`` | - | - |
 
 A record is ``{name: {"kind", "path", "sha256"}}``, ``name`` e.g. ``tokenizer/holistic``,
@@ -241,3 +241,20 @@ def attach(trained, folder: str | Path):
         if rec is not None:
             trained.meta[KEY] = rec
     return trained
+
+
+def check_generated(meta: Mapping, where: str | Path, allow: bool) -> list[str]:
+    """A generated run's generator, as its ``index.json`` (``where``, read into ``meta``) records it,
+    against that generator folder now: a generator retrained since the run was written is a
+    ``MismatchError`` naming both digests and the command that regenerates the run (``allow``:
+    a warning and the run's tag instead). Runs written without a record (other code's output) and
+    runs whose generator folder is not there are not checked."""
+    rec = meta.get(KEY) or {}
+    gen = rec.get("generator") if isinstance(rec, Mapping) else None
+    if not isinstance(gen, Mapping) or not gen.get("path"):
+        return []
+    method = meta.get("method") or "<method>"
+    return check(rec, {"generator": ("generator", gen["path"])}, model=f"the generated run {Path(where).parent}",
+                 where=str(where), allow=allow,
+                 fix=f"Regenerate the run: `party generate generator.method={method}` (or `dvc repro`)")
+

@@ -200,9 +200,10 @@ def generation_scorer(cfg, replications: int):
     protocol.update(replications=replications, sources={**protocol["sources"], "ground_truth": False})
     gt = GroundTruthSource(ctx, ec.split, ec.max_motion_len, ec.unit_length)
     embedders = {s: Embedder(ev, ec.embed_batch_size) for s, ev in evaluators.items()}
+    allow = bool(cfg.generator.get("allow_mismatch", False)) if "generator" in cfg else False
 
     def score(gen_dir: Path) -> dict:
-        src = GeneratedSource(gen_dir, ctx, ec.split, ec.unit_length)
+        src = GeneratedSource(gen_dir, ctx, ec.split, ec.unit_length, allow_mismatch=allow)
         res = run_protocol(protocol, gt, embedders, {}, [src], parts, sc_ref, ctx.n_joints, ctx.layout,
                            progress=False)[src.name]
         row = {}

@@ -77,7 +77,8 @@ def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_refere
     toks = tokenizer_sources(cfg, ctx, device)
     spec = ec.sources.generated
     spec = list(spec) if isinstance(spec, ListConfig) else spec
-    generated = [GeneratedSource(p, ctx, ec.split, ec.unit_length)
+    allow = bool(cfg.generator.get("allow_mismatch", False)) if "generator" in cfg else False
+    generated = [GeneratedSource(p, ctx, ec.split, ec.unit_length, allow_mismatch=allow)
                  for p in discover_generated(spec, ec.sources.generated_dir)]
     names = [g.name for g in generated]
     reserved = {"ground_truth"} | {f"recon_{s}" for s in toks}

@@ -219,7 +219,7 @@ class GeneratedSource:
     (one evaluator unit), checked at load time so the error names the file."""
 
     def __init__(self, run_dir: str | Path, ctx: DataContext, split: str | None = None,
-                 min_frames: int | None = None):
+                 min_frames: int | None = None, allow_mismatch: bool = False):
         self.dir = Path(run_dir)
         path = self.dir / "index.json"
         try:
@@ -235,6 +235,8 @@ class GeneratedSource:
         self.name = check_name(name, "generated run name" + ("" if meta.get("name") else " (its folder's name)"),
                                str(path))
         self.meta = {k: v for k, v in meta.items() if k != "samples"}
+        from party.provenance import check_generated
+        check_generated(self.meta, path, allow_mismatch)   # its generator retrained since: refused
         toks = {(c["id"], cap["caption"]): cap["tokens"] for c in ctx.index.clips() for cap in c["captions"]}
         self.by_clip: dict[str, list[tuple[str, list | None, np.ndarray, bytes]]] = defaultdict(list)
         for s in meta["samples"]:
