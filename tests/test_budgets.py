@@ -61,7 +61,7 @@ def test_plan_resume_never_picks_a_checkpoint_past_the_budget(tmp_path):
     assert p.resume_from == tmp_path / "steps-300" / "last.ckpt" and p.resume_step == 300
     assert p.ckpt == tmp_path / "steps-500" / "last.ckpt" and set(p.past) == {last}
     assert plan_resume(tmp_path, True, max_steps=300).ckpt == tmp_path / "steps-300" / "last.ckpt"
-    p = plan_resume(tmp_path, False, max_steps=20)           # resuming off: from scratch, as before
+    p = plan_resume(tmp_path, False, max_steps=20)           # resuming off: always from scratch
     assert p.resume_from is None and p.ckpt == last
 
 
@@ -178,7 +178,7 @@ def test_reconstruction_table_shows_the_steps_trained():
                                   "reconstruction": {"mpjpe_mm": {"mean": 30.0, "ci95": 1.0}}},
                "recon_arms": {"reconstruction": {"mpjpe_mm": {"mean": 20.0, "ci95": 1.0}}}}
     eff = {"tokenizers": {"holistic": {"params": 1_000_000, "window": 8, "steps": 300, "ait_ms": 1.0},
-                          "arms": {"params": 500_000, "window": 12, "steps": None}}}      # written before: unknown
+                          "arms": {"params": 500_000, "window": 12, "steps": None}}}      # no steps recorded: "-"
     t = table4(results, eff)
     assert "| Stream | Window | # Params | Steps |" in t
     assert "| holistic | 8 | 1.00M | 300 |" in t and "| arms | 12 | 0.50M | - |" in t

@@ -1,5 +1,5 @@
-"""Worker processes end with the process that started them, whatever kills it: ``kill -9`` of
-``evaluate`` used to leave its spawned protocol workers (~2 GB each) waiting for work for ever.
+"""Worker processes end with the process that started them, whatever kills it: without that, a
+``kill -9`` of ``evaluate`` leaves its spawned protocol workers (~2 GB each) waiting for ever.
 ``party.lifecycle.die_with_parent`` is every pool's initializer (``prctl(PR_SET_PDEATHSIG)`` on
 Linux, a thread watching the parent everywhere)."""
 import os

@@ -59,7 +59,7 @@ def test_frame_lengths_refuse_what_no_stream_can_make():
     assert {s: t.tolist() for s, t in out.items()} == {"holistic": [6, 12], "arms": [4, 8], "legs": [4, 8]}
     assert frame_lengths(None, w, 50) is None and frame_lengths([None, None], w, 50) is None
     assert frame_lengths([12, 392], w, 50)["holistic"].tolist() == [1, 49]
-    for bad in (0, -5, 7, 11, 393, 5000):             # 0 and 7 used to be rounded up to one code
+    for bad in (0, -5, 7, 11, 393, 5000):             # refused, not rounded up to one code (0, 7)
         with pytest.raises(ValueError, match=r"generate.frames: lengths must lie in \[12, 392\] frames"):
             frame_lengths([60, bad], w, 50)
     with pytest.raises(ValueError, match="give a length for every text or none"):

@@ -241,8 +241,8 @@ def test_sweeps_in_conf_expand():
     conf = Path(__file__).resolve().parents[2] / "conf" / "sweep"
     tab4 = vq_ablation.expand(vq_ablation.load_sweep("vq_tab4", conf))
     assert len(tab4) == 6 and tab4[0]["label"] == "w4-baseline"
-    s12 = vq_ablation.expand(vq_ablation.load_sweep("vq_s12", conf))
-    assert len(s12) == 4 and all("vqvae.tokenizers.holistic.window=8" in p["overrides"] for p in s12)
+    lte_gte = vq_ablation.expand(vq_ablation.load_sweep("vq_lte_gte", conf))
+    assert len(lte_gte) == 4 and all("vqvae.tokenizers.holistic.window=8" in p["overrides"] for p in lte_gte)
 
 
 def test_resume_key_treats_int_and_float_alike():

@@ -102,10 +102,10 @@ def _sqrtm_psd(a: np.ndarray) -> np.ndarray:
 
 
 def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
-    """||mu1-mu2||² + tr(S1) + tr(S2) - 2 tr((S1 S2)^½), without scipy.
+    """||mu1-mu2||² + tr(sigma1) + tr(sigma2) - 2 tr((sigma1 sigma2)^½), without scipy.
 
-    tr((S1 S2)^½) equals the sum of square roots of the eigenvalues of the
-    symmetric PSD matrix S1^½ S2 S1^½ (same spectrum as S1 S2), so two
+    tr((sigma1 sigma2)^½) equals the sum of square roots of the eigenvalues of the
+    symmetric PSD matrix sigma1^½ sigma2 sigma1^½ (same spectrum as sigma1 sigma2), so two
     symmetric eigendecompositions replace ``scipy.linalg.sqrtm`` and avoid
     its complex round-off branch.
     """

@@ -1,8 +1,9 @@
 """``party gen_ablation generator.ablation.sweep=<name>``: a generator ablation grid, one table.
 
 The grid is declared in ``conf/sweep/<name>.yaml`` (``gen_tab5``: PG x PTG x HPF, Tab. 5 / S9;
-``gen_s13``: K = 1..6; ``gen_s14``: aux loss off/on; ``gen_s17``: PG window T = 1..5;
-``gen_seeds`` / ``gen_seeds_holistic``: training seeds 1234, 1, 2 of ParTY / holistic-only)::
+``gen_ptg_k``: K = 1..6, Tab. S13; ``gen_aux_loss``: aux loss off/on, Tab. S14;
+``gen_pg_window``: PG window T = 1..5, Tab. S17; ``gen_seeds`` / ``gen_seeds_holistic``: training
+seeds 1234, 1, 2 of ParTY / holistic-only)::
 
     name: gen_tab5
     method: party                      # the generator.methods entry the overrides modify

@@ -146,7 +146,7 @@ class VQVAE(nn.Module):
 
 # ====================================================================== families
 FAMILIES: dict[str, type[nn.Module]] = {"temporal_vq": VQVAE}
-LEGACY_FAMILY = "temporal_vq"   # the family of model.pt files written before families existed
+LEGACY_FAMILY = "temporal_vq"   # the family of a model.pt that records none
 
 
 def register_family(name: str, cls: type[nn.Module]) -> None:
