@@ -1,12 +1,15 @@
 """``data/eval/report.html``: one self-contained page to look at an evaluation.
 
-- the paper-layout tables of ``tables.md`` (Markdown pipe tables rendered as HTML tables),
+- a legend: the colours of the animations (``party.render``'s left / right / centre / trajectory
+  colours) and what the arrows and marks of the tables mean (``report.TABLE_LEGEND``),
+- the paper-layout tables of ``tables.md`` (Markdown pipe tables rendered as HTML tables, the
+  best value of each column bold, ties within the 95% CIs bold†, a computed reading under each),
 - bar charts with 95% CI error bars per metric for every scored source (ground truth and
   generated runs; reconstructions have their own Table 4), so an ablation grid evaluated side
   by side reads as bars,
 - side-by-side stick-figure animations (GIF) of the ground truth and every generated run for a
   fixed set of test clips (``eval.report.clips``: the first clips, by id, that every run
-  generated), titled with the caption.
+  generated), titled with the caption; the panels wrap and shrink to the page width.
 
 Every image is embedded as a ``data:`` URI, so the file can be mailed or logged to MLflow as one
 artifact. A small script sets ``data-images-ok`` / ``data-images`` on ``<body>`` once every image
@@ -23,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from party.render import PLAIN_TEXT, figure_png
+from party.evaluation.report import TABLE_LEGEND
+from party.render import CENTER_COLOR, LEFT_COLOR, PLAIN_TEXT, RIGHT_COLOR, TRAJ_COLOR, figure_png
 
 #: (stream or 'coherence', metric, label, higher is better)
 CHART_METRICS = (("{whole}", "top1", "R-Precision Top 1 ({whole})", True),
@@ -47,17 +51,31 @@ body { font-family: sans-serif; margin: 2em; color: #222; }
 table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: left; }
 th { background: #f0f0f0; }
-figure { display: inline-block; margin: 0.5em; }
+td strong { color: #0b6623; }
+.grid { display: flex; flex-wrap: wrap; gap: 0.5em; align-items: flex-start; }
+figure { margin: 0.5em 0; max-width: 100%; }
+figure img { max-width: 100%; height: auto; display: block; }
 figcaption { font-size: 0.85em; max-width: 60em; }
+.legend { border: 1px solid #ccc; background: #fafafa; padding: 0.4em 1em; max-width: 75em; }
+.legend p { margin: 0.4em 0; }
+.swatch { display: inline-block; width: 1.6em; height: 0.5em; margin: 0 0.3em 0.1em 0.6em;
+          vertical-align: middle; }
 </style>"""
+
+#: (colour, what it draws) in the animations, as ``party.render`` draws them
+ANIMATION_COLOURS = ((LEFT_COLOR, "left arm and leg (red)"), (RIGHT_COLOR, "right arm and leg (blue)"),
+                     (CENTER_COLOR, "spine and head (grey)"), (TRAJ_COLOR, "the root's path on the ground (orange)"))
+
+
+def inline(s: str) -> str:
+    """One line of Markdown text, escaped: `code` and **bold**."""
+    s = re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(s))
+    return re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", s)
 
 
 def markdown_to_html(md: str) -> str:
-    """The subset of Markdown ``tables.md`` uses: headings, pipe tables, paragraphs, `code`."""
+    """The subset of Markdown ``tables.md`` uses: headings, pipe tables, paragraphs, `code`, **bold**."""
     out, table = [], []
-
-    def inline(s: str) -> str:
-        return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(s))
 
     def flush():
         if not table:
@@ -145,17 +163,28 @@ def animations(ctx, generated: Sequence, clips: Sequence[dict], max_frames: int)
     return out
 
 
+def legend_html(animated: bool = True) -> str:
+    """What the tables' and charts' arrows and marks mean and, when ``animated``, the animations' colours."""
+    swatches = "".join(f"<span class='swatch' style='background: {c}'></span>{html.escape(what)}"
+                       for c, what in ANIMATION_COLOURS)
+    anim = (f"<p><b>Animations</b> (real motion first, then every generated run):{swatches}.</p>"
+            if animated else "")
+    return f"<div class='legend'>{anim}<p><b>Tables and charts</b>: {inline(TABLE_LEGEND)}</p></div>"
+
+
 def report_html(tables_md: str, charts_png: bytes | None, gifs: Sequence[tuple[str, bytes]], title: str) -> str:
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>", f"<title>{html.escape(title)}</title>",
-             _STYLE, "</head><body>", f"<h1>{html.escape(title)}</h1>"]
+             _STYLE, "</head><body>", f"<h1>{html.escape(title)}</h1>", legend_html(bool(gifs))]
     if charts_png is not None:
         parts += ["<h2>Metrics with 95% CIs</h2>",
                   f"<figure><img alt='metrics' src='{_data_uri(charts_png, 'image/png')}'></figure>"]
     if gifs:
-        parts.append("<h2>Samples: ground truth beside every generated run</h2>")
+        parts += ["<h2>Samples: ground truth beside every generated run</h2>", "<div class='grid'>"]
         for cap, gif in gifs:
             parts.append(f"<figure><img alt='{html.escape(cap)}' src='{_data_uri(gif, 'image/gif')}'>"
                          f"<figcaption>{html.escape(cap)}</figcaption></figure>")
+        parts.append("</div>")
+    tables_md = tables_md.replace(TABLE_LEGEND + "\n", "")          # the legend above says it
     parts += ["<h2>Tables</h2>", markdown_to_html(tables_md), _SCRIPT, "</body></html>"]
     return "\n".join(parts) + "\n"
 

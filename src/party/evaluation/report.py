@@ -3,15 +3,39 @@
 The stream names come from the caller (``dataset.parts.streams``, see ``PartLayout``): Table 1
 reads the whole-body stream's evaluator (``whole_stream``), Table 2 the part streams'
 (``part_streams``). Table 5's switch columns are those the generated runs declare.
+
+Every table says who wins: in each column whose header carries a direction (↑ higher is better,
+↓ lower, → closest to real motion) the best method is **bold** and the methods whose 95% CI
+overlaps the best's are **bold**† (tied); reference rows (real motion, VQ-VAE reconstructions)
+are never ranked. Part-level tables rank within each part (each part has its own evaluator). A
+one-line reading under the table is computed from the same numbers (``reading``). A column no row
+has a value for is left out, with a note saying why; Table 5 needs at least two runs.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 SOURCE_LABELS = {"ground_truth": "Real motion"}
+
+#: kinds of rows: the method rows are ranked, the others are references
+METHOD, REAL, REFERENCE = "method", "real", "reference"
+#: header suffix -> what is better
+DIRECTIONS = {"↑": "higher", "↓": "lower", "→": "target"}
+TIE_MARK = "†"
+TIE_NOTE = f"{TIE_MARK} tied with the best within the 95% CIs (the two intervals overlap)."
+TABLE_LEGEND = ("↑ higher is better, ↓ lower is better, → closest to Real motion is better. **Bold**: the best "
+                "method in its column (within each part where the table has a row per part; Real motion and "
+                f"VQ-VAE reconstructions are references and never ranked); **bold**{TIE_MARK}: tied with the "
+                "best within the 95% CIs.")
+#: why a column can be empty for every row (by header without its arrow)
+EMPTY_REASONS = {
+    "MultiModality": ("it needs at least `eval.multimodality.times` generations per caption: set "
+                      "`generator.generate.repeats` to at least that and rerun `party generate`"),
+}
 
 
 def label(source: str) -> str:
@@ -20,6 +44,13 @@ def label(source: str) -> str:
     if source.startswith("recon_"):
         return f"VQ-VAE reconstruction ({source[6:]})"
     return source
+
+
+def row_kind(source: str) -> str:
+    """``REAL`` for the ground truth, ``REFERENCE`` for a tokenizer reconstruction, else ``METHOD``."""
+    if source == "ground_truth":
+        return REAL
+    return REFERENCE if source.startswith("recon_") else METHOD
 
 
 def fmt(stat: Mapping | None, digits: int = 3) -> str:
@@ -35,21 +66,169 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows])
 
 
+def direction(header: str) -> str | None:
+    """'higher' / 'lower' / 'target' (closest to real motion) from the header's arrow; None: not ranked."""
+    return DIRECTIONS.get(header.rstrip()[-1:]) if header.strip() else None
+
+
+def metric_name(header: str) -> str:
+    """The header without its arrow."""
+    h = header.rstrip()
+    return h[:-1].rstrip() if h[-1:] in DIRECTIONS else h
+
+
+def _finite(stat: Mapping | None) -> bool:
+    m = stat.get("mean") if stat else None
+    return m is not None and bool(np.isfinite(m))
+
+
+def rank(stats: Sequence[Mapping | None], better: str, target: float | None = None) -> tuple[int | None, list[int]]:
+    """(index of the best entry, indices of the entries tied with it) among ``stats`` ({'mean',
+    'ci95'}; None or a missing / non-finite mean: not ranked). ``better``: 'higher', 'lower' or
+    'target' (closest to ``target``). Tied: the 95% CIs overlap (the gap between the two means, or
+    between their distances to ``target``, is at most the sum of the two half-widths). On equal
+    means the first entry is the best."""
+    if better not in DIRECTIONS.values():
+        raise ValueError(f"rank: better must be one of {sorted(DIRECTIONS.values())}, got {better!r}")
+    vals = [(i, float(s["mean"]), float(s.get("ci95") or 0.0)) for i, s in enumerate(stats) if _finite(s)]
+    if not vals or (better == "target" and target is None):
+        return None, []
+
+    def score(m: float) -> float:                   # lower is better
+        return -m if better == "higher" else m if better == "lower" else abs(m - float(target))
+
+    best, m_best, c_best = min(vals, key=lambda v: score(v[1]))
+    return best, [i for i, m, c in vals if i != best and score(m) - score(m_best) <= c + c_best]
+
+
+def _value(stat: Mapping, digits: int) -> str:
+    return f"{stat['mean']:.{digits}f} (±{float(stat.get('ci95') or 0.0):.{digits}f})"
+
+
+def _names(items: Sequence[str], most: int = 4) -> str:
+    if len(items) > most:
+        return ", ".join(items[:most - 1]) + f" and {len(items) - most + 1} more"
+    return ", ".join(items[:-1]) + (" and " if len(items) > 1 else "") + items[-1]
+
+
+def verdict(names: Sequence[str], stats: Sequence[Mapping | None], better: str, target: float | None = None,
+            digits: int = 3) -> str:
+    """Who wins among ``names`` (their ``stats``), in words: the best with its mean and CI, who is tied
+    with it within the 95% CIs and who it is ahead of beyond them; '' when nobody is scored."""
+    best, ties = rank(stats, better, target)
+    if best is None:
+        return ""
+    scored = [i for i, s in enumerate(stats) if _finite(s)]
+    text = f"{names[best]} {_value(stats[best], digits)}"
+    if better == "target":
+        text += f", closest to Real motion ({float(target):.{digits}f})"
+    if len(scored) == 1:
+        return text + ", the only method scored"
+    ahead = [names[i] for i in scored if i != best and i not in ties]
+    if ties:
+        text += ", tied within the 95% CIs with " + _names([f"{names[i]} {_value(stats[i], digits)}" for i in ties])
+    if ahead:
+        text += ("; " if ties else ", ") + "ahead of " + _names(ahead) + " beyond the 95% CIs"
+    return text
+
+
+def reading(metric: str, names: Sequence[str], stats: Sequence[Mapping | None], better: str,
+            target: float | None = None, digits: int = 3) -> str:
+    """One sentence computed from the numbers, e.g. 'Best Top 1: party 0.430 (±0.010), ahead of
+    holistic beyond the 95% CIs.'; '' when nobody is scored."""
+    v = verdict(names, stats, better, target, digits)
+    return f"Best {metric}: {v}." if v else ""
+
+
+@dataclass(frozen=True)
+class Num:
+    """A table cell holding a statistic ({'mean', 'ci95'} or None), printed with ``fmt``."""
+    stat: Mapping | None
+    digits: int = 3
+
+    def __str__(self) -> str:
+        return fmt(self.stat, self.digits)
+
+
+@dataclass
+class Row:
+    cells: list                     # str or Num, one per column; the first names the row
+    kind: str = METHOD              # METHOD rows are ranked; REAL gives the target of a → column
+    marks: dict = field(default_factory=dict)
+
+
+def ranked_table(title: str, header: Sequence[str], rows: Sequence[Row], *, group: int | None = None,
+                 ranked: bool = True, notes: Sequence[str] = ()) -> str:
+    """``### title``, the table and what it says: the best / tied cells marked in every ranked column
+    (within each value of column ``group`` when given), a reading of the first ranked column,
+    the tie footnote, a note per column left out because no row has a value, then ``notes``."""
+    header, rows = list(header), list(rows)
+    keep = list(range(len(header)))
+    if rows:
+        keep = [j for j in keep if j == 0 or j == group or any(str(r.cells[j]).strip() != "-" for r in rows)]
+    dropped = [header[j] for j in range(len(header)) if j not in keep]
+    groups: dict[str, list[Row]] = {}
+    for r in rows:
+        groups.setdefault(str(r.cells[group]) if group is not None else "", []).append(r)
+    readings, tied = [], False
+    for j in keep:
+        better = direction(header[j]) if ranked else None
+        if better is None or not any(isinstance(r.cells[j], Num) for r in rows):
+            continue
+        clauses = []
+        for g, members in groups.items():
+            cands = [r for r in members if r.kind == METHOD]
+            real = [r.cells[j].stat for r in members if r.kind == REAL and isinstance(r.cells[j], Num)
+                    and _finite(r.cells[j].stat)]
+            target = float(real[0]["mean"]) if real else None
+            stats = [r.cells[j].stat if isinstance(r.cells[j], Num) else None for r in cands]
+            if len(cands) >= 2:
+                best, ties = rank(stats, better, target)
+                if best is not None:
+                    cands[best].marks[j] = "best"
+                    for i in ties:
+                        cands[i].marks[j] = "tie"
+                    tied |= bool(ties)
+            if not readings:
+                digits = next((r.cells[j].digits for r in cands if isinstance(r.cells[j], Num)), 3)
+                v = verdict([str(r.cells[0]) for r in cands], stats, better, target, digits)
+                if v:
+                    clauses.append(f"{g}: {v}" if group is not None else v)
+        if clauses and not readings:
+            by = f" by {header[group].lower()} — " if group is not None else ": "
+            readings.append(f"Best {metric_name(header[j])}{by}" + "; ".join(clauses) + ".")
+
+    def cell(r: Row, j: int) -> str:
+        s = str(r.cells[j])
+        mark = r.marks.get(j)
+        return f"**{s}**" if mark == "best" else f"**{s}**{TIE_MARK}" if mark == "tie" else s
+
+    out = [f"### {title}", _table([header[j] for j in keep], [[cell(r, j) for j in keep] for r in rows])]
+    out += readings + ([TIE_NOTE] if tied else [])
+    if dropped:
+        items = [metric_name(h) + (f" ({EMPTY_REASONS[metric_name(h)]})" if metric_name(h) in EMPTY_REASONS else "")
+                 for h in dropped]
+        sep = "; " if any(metric_name(h) in EMPTY_REASONS for h in dropped) else ", "
+        out.append(f"Column{'s' if len(items) > 1 else ''} left out, no row has a value: " + sep.join(items) + ".")
+    return "\n\n".join(out + [n for n in notes if n])
+
+
 def table1(results: Mapping, whole_stream: str, large: int = 256) -> str:
     rows, rows_b = [], []
     for src, d in results.items():
         h = d.get(whole_stream)
         if not h:
             continue
-        rows.append([label(src)] + [fmt(h.get(k)) for k in ("top1", "top2", "top3", "fid", "mm_dist", "diversity",
-                                                             "multimodality")])
+        rows.append(Row([label(src)] + [Num(h.get(k)) for k in ("top1", "top2", "top3", "fid", "mm_dist",
+                                                                "diversity", "multimodality")], row_kind(src)))
         if f"top1_b{large}" in h:
-            rows_b.append([label(src)] + [fmt(h.get(f"top{k}_b{large}")) for k in (1, 2, 3)])
-    out = f"### Table 1: standard metrics ({whole_stream} evaluator, R-Precision with 32 candidates)\n\n" + _table(
-        ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓", "Diversity →", "MultiModality ↑"], rows)
+            rows_b.append(Row([label(src)] + [Num(h.get(f"top{k}_b{large}")) for k in (1, 2, 3)], row_kind(src)))
+    out = ranked_table(f"Table 1: standard metrics ({whole_stream} evaluator, R-Precision with 32 candidates)",
+                       ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓", "Diversity →",
+                        "MultiModality ↑"], rows)
     if rows_b:
-        out += f"\n\n### R-Precision with B = {large} candidates (HumanTOMATO protocol)\n\n" + _table(
-            ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑"], rows_b)
+        out += "\n\n" + ranked_table(f"R-Precision with B = {large} candidates (HumanTOMATO protocol)",
+                                     ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑"], rows_b)
     return out
 
 
@@ -59,18 +238,19 @@ def table2(results: Mapping, part_streams: Sequence[str]) -> str:
         for part in part_streams:
             if part in d:
                 p = d[part]
-                rows.append([label(src), part.capitalize()]
-                            + [fmt(p.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
+                rows.append(Row([label(src), part.capitalize()] + [Num(p.get(k)) for k in ("top1", "top3", "fid",
+                                                                                           "mm_dist")], row_kind(src)))
     names = " / ".join(p.capitalize() for p in part_streams)
-    return f"### Table 2: part-level metrics ({names} evaluators)\n\n" + _table(
-        ["Method", "Part", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
+    return ranked_table(f"Table 2: part-level metrics ({names} evaluators)",
+                        ["Method", "Part", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"],
+                        rows, group=1)
 
 
 def table3(results: Mapping) -> str:
-    rows = [[label(s), fmt(d["coherence"].get("tc"), 2), fmt(d["coherence"].get("sc"), 2)]
+    rows = [Row([label(s), Num(d["coherence"].get("tc"), 2), Num(d["coherence"].get("sc"), 2)], row_kind(s))
             for s, d in results.items() if "coherence" in d]
-    return "### Table 3: coherence-level metrics\n\n" + _table(["Method", "Temporal Coherence (TC) ↑",
-                                                                  "Spatial Coherence (SC) ↑"], rows)
+    return ranked_table("Table 3: coherence-level metrics",
+                        ["Method", "Temporal Coherence (TC) ↑", "Spatial Coherence (SC) ↑"], rows)
 
 
 def table4(results: Mapping, efficiency: Mapping) -> str:
@@ -80,15 +260,18 @@ def table4(results: Mapping, efficiency: Mapping) -> str:
             continue
         stream = src[6:]
         e = efficiency.get("tokenizers", {}).get(stream, {})
-        fid = d.get(stream, {}).get("fid")
         params = e.get("params")
         ait = e.get("ait_ms")
-        rows.append([stream, e.get("window", "-"), f"{params / 1e6:.2f}M" if params else "-",
-                     str(e.get("steps") or "-"), fmt(fid), fmt(d.get("reconstruction", {}).get("mpjpe_mm"), 1),
-                     f"{ait:.1f} ms" if ait else "-"])
+        rows.append(Row([stream, e.get("window", "-"), f"{params / 1e6:.2f}M" if params else "-",
+                         str(e.get("steps") or "-"), Num(d.get(stream, {}).get("fid")),
+                         Num(d.get("reconstruction", {}).get("mpjpe_mm"), 1), f"{ait:.1f} ms" if ait else "-"],
+                        REFERENCE))
     header = ["Stream", "Window", "# Params", "Steps", "FID ↓", "MPJPE (mm) ↓", "AIT (encode+decode)"]
-    return ("### Table 4: tokenizer reconstruction (FID with the stream's evaluator; MPJPE in mm, root-aligned "
-            "per frame; Steps: the steps trained, from model.pt)\n\n" + _table(header, rows))
+    note = ("Not ranked: each row is a different stream, its FID from that stream's evaluator and its MPJPE "
+            "over that stream's joints." if len(rows) > 1 else "")
+    return ranked_table("Table 4: tokenizer reconstruction (FID with the stream's evaluator; MPJPE in mm, "
+                        "root-aligned per frame; Steps: the steps trained, from model.pt)", header, rows,
+                        ranked=False, notes=[note])
 
 
 def switch_names(switches: Mapping[str, Mapping]) -> list[str]:
@@ -97,29 +280,35 @@ def switch_names(switches: Mapping[str, Mapping]) -> list[str]:
 
 
 def table5(results: Mapping, switches: Mapping[str, Mapping], whole_stream: str) -> str:
+    """The ablation: a row per run that declares switches. Shown from two such runs on (one run is no
+    ablation): with fewer, a one-line note saying so instead."""
     names = switch_names(switches)
     rows = []
     for src, sw in switches.items():
         h = results.get(src, {}).get(whole_stream)
         if h:
-            rows.append([src] + ["✓" if sw.get(k) else "" for k in names]
-                        + [fmt(h.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
-    return "### Table 5: ablation of the proposed components\n\n" + _table(
-        ["Run", *(k.upper() for k in names), "Top 1 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
+            rows.append(Row([src] + ["✓" if sw.get(k) else "" for k in names]
+                            + [Num(h.get(k)) for k in ("top1", "top3", "fid", "mm_dist")]))
+    if len(rows) < 2:
+        runs = f" ({', '.join(str(r.cells[0]) for r in rows)})" if rows else ""
+        return (f"Table 5 (ablation of the proposed components) not shown: {len(rows)} scored run{runs} declares "
+                "switches; an ablation needs at least 2.")
+    return ranked_table("Table 5: ablation of the proposed components",
+                        ["Run", *(k.upper() for k in names), "Top 1 ↑", "Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
 
 
 def efficiency_table(efficiency: Mapping) -> str:
     """Parameters, average inference time and the steps each model was trained (``steps_trained``
     of its export; "-" for models exported without it and for trivial baselines)."""
-    def row(model: str, e: Mapping, steps_key: str) -> list[str]:
+    def row(model: str, e: Mapping, steps_key: str) -> Row:
         steps = e.get(steps_key)
-        return [model, f"{e['params'] / 1e6:.2f}M" if e.get("params") else "-",
-                f"{e['ait_ms']:.1f} ms" if e.get("ait_ms") else "-", str(steps) if steps is not None else "-"]
-    rows = [[f"evaluator ({s})", f"{p / 1e6:.2f}M", "-", "-"] for s, p in efficiency.get("evaluators", {}).items()]
+        return Row([model, f"{e['params'] / 1e6:.2f}M" if e.get("params") else "-",
+                    f"{e['ait_ms']:.1f} ms" if e.get("ait_ms") else "-", str(steps) if steps is not None else "-"])
+    rows = [Row([f"evaluator ({s})", f"{p / 1e6:.2f}M", "-", "-"]) for s, p in efficiency.get("evaluators", {}).items()]
     rows += [row(f"tokenizer ({s})", e, "steps") for s, e in efficiency.get("tokenizers", {}).items()]
     rows += [row(f"generator ({s})", e, "steps_trained") for s, e in efficiency.get("generated", {}).items()]
-    return "### Efficiency: parameters, average inference time per sample and steps trained\n\n" + _table(
-        ["Model", "# Params", "AIT", "Steps"], rows)
+    return ranked_table("Efficiency: parameters, average inference time per sample and steps trained",
+                        ["Model", "# Params", "AIT", "Steps"], rows, ranked=False)
 
 
 def subset_table(results: Mapping, subset: str, streams: Sequence[str], description: str) -> str:
@@ -129,18 +318,22 @@ def subset_table(results: Mapping, subset: str, streams: Sequence[str], descript
         for s in streams:
             p = d.get(subset, {}).get(s)
             if p:
-                rows.append([label(src), s.capitalize()] + [fmt(p.get(k)) for k in ("top1", "top3", "fid", "mm_dist")])
+                rows.append(Row([label(src), s.capitalize()] + [Num(p.get(k)) for k in ("top1", "top3", "fid",
+                                                                                        "mm_dist")], row_kind(src)))
     if not rows:
         return ""
-    return f"### Subset `{subset}`: {description}\n\n" + _table(
-        ["Method", "Evaluator", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"], rows)
+    return ranked_table(f"Subset `{subset}`: {description}",
+                        ["Method", "Evaluator", "R-Precision Top 1 ↑", "R-Precision Top 3 ↑", "FID ↓", "MM-Dist ↓"],
+                        rows, group=1)
 
 
 def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str = "", large: int = 256, *,
            whole_stream: str, part_streams: Sequence[str], subsets: Mapping[str, str] | None = None) -> str:
-    """All tables. ``whole_stream`` / ``part_streams``: ``PartLayout.whole_stream`` /
-    ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description} of ``run_protocol``'s subsets."""
-    parts = [header, table1(results, whole_stream, large), table2(results, part_streams), table3(results)]
+    """All tables, after ``header`` and the legend (``TABLE_LEGEND``). ``whole_stream`` / ``part_streams``:
+    ``PartLayout.whole_stream`` / ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description}
+    of ``run_protocol``'s subsets."""
+    parts = [header, TABLE_LEGEND, table1(results, whole_stream, large), table2(results, part_streams),
+             table3(results)]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))
     if switches:
