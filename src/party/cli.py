@@ -8,8 +8,11 @@
     party params --reset              forget the kept choices
     party params --check              fail if params.yaml is stale w.r.t. conf/
     party stages                      list the stages, with their inputs and outputs (dvc.yaml)
+    party exp show [--metrics a,b]    `dvc exp show` that fits a screen: headline metrics and the
+                                      params that differ (`party exp show --help`)
     party sweep-status <out_dir>      a grid's points: done / running / failed / pending
     party repro [-j N] [stage ...]    dvc repro with up to N independent stages at once
+    party results [--check]           docs/results.md (+ its snapshot docs/results.json) from the outputs
     party convert-checkpoint --trust IN OUT
                                       rewrite a model file that only a full unpickle reads
                                       (runs its code: trusted files only) as loadable data
@@ -289,9 +292,15 @@ def _main(argv: list[str] | None = None) -> int:
         return 0
     if cmd == "sweep-status":
         return cmd_sweep_status(rest)
+    if cmd == "exp":
+        from party.exp_view import main as exp_main
+        return exp_main(rest)
     if cmd == "repro":
         from party.repro import main as repro_main
         return repro_main(rest)
+    if cmd == "results":
+        from party.results import main as results_main
+        return results_main(rest)
     if cmd == "convert-checkpoint":
         from party.checkpoints import main as convert_main
         return convert_main(rest)

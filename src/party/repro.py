@@ -18,14 +18,19 @@ Each child gets ``OMP_NUM_THREADS`` = cores // (stages running when it starts, i
 at most N) unless set, which the stages' ``threads: null`` keys leave to torch: a stage that runs
 alone gets every core. With N > 1 every stage's output goes to ``logs/repro/<stage>.log`` (its tail is
 printed when it fails); with N = 1 it streams to the console. ``logs/repro/summary.json`` keeps the
-per-stage wall times of the last run. A failed stage stops new launches (running ones finish), as
-``dvc repro`` does; ``--keep-going`` runs every stage that does not depend on it.
+per-stage wall times of the last run and the machine it ran on (``machine_info``: CPU, cores, torch's
+CPU capability, the precision ``auto`` resolved to, the git commit; ``party results`` publishes
+them). ``repro.expected_seconds`` are relative weights: only their ratios matter; where the last
+run's summary has times for some stages only, the weights are scaled to those times
+(``scaled_weights``) so that both are in seconds. A failed stage stops new launches (running
+ones finish), as ``dvc repro`` does; ``--keep-going`` runs every stage that does not depend on it.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import platform
 import signal
 import subprocess
 import sys
@@ -107,6 +112,87 @@ def stage_times(expected: Mapping[str, float], stages: Iterable[str]) -> dict[st
     return out
 
 
+def scaled_weights(weights: Mapping[str, float], seconds: Mapping[str, float]) -> dict[str, float]:
+    """``weights`` (relative costs per stage, ``stage_times``) in the unit of ``seconds`` (the last
+    run's times of some stages): scaled by the ratio of the two over the stages both have, so a
+    stage with a measured time and one with a weight compare; as they are without a common stage."""
+    common = [s for s in weights if s in seconds]
+    w = sum(weights[s] for s in common)
+    if not common or w <= 0:
+        return dict(weights)
+    k = sum(seconds[s] for s in common) / w
+    return {s: v * k for s, v in weights.items()}
+
+
+CPU_ENV = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else ``platform``)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text(errors="replace").splitlines():
+            if line.split(":", 1)[0].strip() in ("model name", "Model", "Hardware", "cpu model"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def resolved_precisions(params: Path = Path("params.yaml")) -> dict[str, str]:
+    """The precision each part of the pipeline trains or encodes in on this machine, as its stage
+    resolves it (``precision: auto`` -> ``bf16-mixed`` or ``32-true``, ``party.training.resolve_precision``):
+    ``trainer`` (the default), ``vqvae`` / ``evaluator`` / ``generator`` (each section's trainer),
+    ``text`` (the text encoder, ``text.precision``) and ``evaluator_text`` (``evaluator.text_precision``).
+    Without a readable params.yaml: what ``auto`` resolves to here."""
+    from party.training import resolve_precision, trainer_kwargs
+    try:
+        from party.config import load_params
+        cfg = load_params(params)
+    except (OSError, ValueError):
+        return {"auto": resolve_precision("auto", "auto")}
+    out = {"trainer": trainer_kwargs(cfg)["precision"]}
+    for section in ("vqvae", "evaluator", "generator"):
+        if section in cfg and cfg[section].get("trainer") is not None:
+            out[section] = trainer_kwargs(cfg, cfg[section].trainer)["precision"]
+    try:
+        from party.text.encoders import pinned_precision, resolve_text_precision
+        out["text"] = resolve_text_precision(cfg.text)
+        if cfg.get("evaluator") is not None and cfg.evaluator.get("text_precision") is not None:
+            out["evaluator_text"] = pinned_precision(cfg.text, cfg.evaluator.text_precision)["precision"]
+    except (ImportError, ValueError, AttributeError) as e:
+        out["text"] = f"unresolved ({e})"
+    return out
+
+
+def machine_info(params: Path = Path("params.yaml")) -> dict:
+    """The machine a run ran on, for ``logs/repro/summary.json``: CPU model, cores, torch's CPU
+    capability (the kernels ATen dispatches to), the CPU-related environment variables set,
+    whether the CPU computes bf16 natively, any CUDA device, the precision each part resolved to
+    (``resolved_precisions``), and the git commit the run started from (``dirty``: tracked files
+    other than generated ones differ from it, as the MLflow runs' ``party.git_dirty``)."""
+    import torch
+
+    from party.tracking.run import _git_state
+    from party.training import cpu_has_native_bf16
+    git = _git_state()
+    dirty = {"true": True, "false": False}.get(git.get("party.git_dirty", ""))
+    return {
+        "cpu_model": cpu_model(),
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "native_bf16": cpu_has_native_bf16(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "env": {k: os.environ[k] for k in CPU_ENV if os.environ.get(k)},
+        "precision": resolved_precisions(params),
+        "commit": None if git.get("party.git_commit") in (None, "unknown") else git["party.git_commit"],
+        "dirty": dirty,
+        "changed": [f for f in git.get("party.git_changed", "").split(", ") if f],
+    }
+
+
 def child_env(jobs: int, side_by_side: int) -> dict[str, str]:
     """The environment of a stage started while ``side_by_side`` stages (itself included) run:
     ``OMP_NUM_THREADS`` = cores // that (at most ``jobs``), so a stage that runs alone
@@ -133,7 +219,9 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     Returns {"stages": {stage: {"status", "seconds"}}, "seconds": wall}; status is ran, unchanged,
     done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    prio = priorities(graph, {**stage_times(expected_times(), graph), **previous_times(log_dir)})
+    machine = machine_info()                 # before any stage runs: the commit the run started from
+    previous = previous_times(log_dir)
+    prio = priorities(graph, {**scaled_weights(stage_times(expected_times(), graph), previous), **previous})
     pending = set(graph)
     running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
     result: dict[str, dict] = {}
@@ -195,7 +283,7 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
             p.wait()
         raise
     summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1),
-               "stages": {s: result[s] for s in graph if s in result}}
+               "stages": {s: result[s] for s in graph if s in result}, "machine": machine}
     (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
