@@ -5,6 +5,8 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -23,17 +25,20 @@
 # On the level of TC: the paper's formula, kept exact, scores real walking well below the
 # paper's 0.96 (legs move in anti-phase and the lag penalty bites); compare sources with each
 # other (ground truth first), not with the paper's absolute numbers.
-# Run as a notebook, with papermill (`-p project /path/to/repo`) or as a script.
+# With its defaults it finds the project from the working dir (the root or `notebooks/`) and its
+# MLflow store as the stages do (`party.tracking.tracking_uri`); other values go in the cell
+# tagged `parameters`. Open it in JupyterLab (`pip install -e .[lab]`), or from the project root
+# run `jupyter execute notebooks/coherence_attention.ipynb`, `pytest --nbmake
+# notebooks/coherence_attention.ipynb`, or `python notebooks/coherence_attention.py`.
 
 # %% tags=["parameters"]
 project = None        # the repository root (params.yaml, data/, mlruns/); default: found from the working dir
-tracking_uri = None   # default: $MLFLOW_TRACKING_URI, else the project's store (tracking.dir)
+tracking_uri = None   # default: the project's store ($MLFLOW_TRACKING_URI, tracking.uri, tracking.dir)
 method = "party"      # the generator whose figures are shown
 
 # %%
 import base64
 import json
-import os
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
@@ -82,7 +87,7 @@ if len(coh):
 # The newest FINISHED `train_generator` run of `method` in the project's store.
 
 # %%
-uri = tracking_uri or os.environ.get("MLFLOW_TRACKING_URI") or tracking.tracking_uri(cfg)
+uri = tracking_uri or tracking.tracking_uri(cfg)
 client = mlflow.MlflowClient(uri)
 exp = client.get_experiment_by_name(cfg.tracking.experiment)
 runs = client.search_runs([exp.experiment_id],

@@ -5,6 +5,8 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -20,8 +22,10 @@
 # (stick figures, embedded GIFs), plots the wrist and ankle heights over time (a raised hand,
 # a kick, a gait's alternation are visible there), and tables lengths and joint ranges per
 # run. Everything is read from `params.yaml` of the project; nothing is trained.
-# Run as a notebook (`pip install -e .[lab]`, `jupyter lab`), with papermill
-# (`-p project /path/to/repo`), or as a script (`python notebooks/generated_motions.py`).
+# With its defaults it finds the project from the working dir (the root or `notebooks/`); other
+# values go in the cell tagged `parameters`. Open it in JupyterLab (`pip install -e .[lab]`), or
+# from the project root run `jupyter execute notebooks/generated_motions.ipynb`, `pytest --nbmake
+# notebooks/generated_motions.ipynb`, or `python notebooks/generated_motions.py`.
 
 # %% tags=["parameters"]
 project = None      # the repository root (params.yaml, data/); default: found from the working dir

@@ -5,6 +5,8 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -18,15 +20,20 @@
 # `mlruns/artifacts/`; see `docs/tracking.md`), lists the runs of an experiment, tables
 # their metrics per stage, shows which params differ between runs of a stage (ablations),
 # groups sweep children under their parent run, and plays the newest logged sample video.
-# Everything is local: no server, no network. Run it as a notebook
-# (`jupytext --to ipynb notebooks/review_runs.py`, then Jupyter: `pip install -e .[lab]`,
-# `jupyter lab`; or `pytest --nbmake`), with papermill (`-p experiment party`), or as a
-# script (`python notebooks/review_runs.py`). Only FINISHED runs are listed unless
-# `all_statuses = True` (RUNNING, FAILED and KILLED runs too).
+# Everything is local: no server, no network. With its defaults it finds the project from the
+# working dir (the root or `notebooks/`) and opens the store its stages log to
+# (`party.tracking.tracking_uri`: `$MLFLOW_TRACKING_URI`, else `tracking.uri`, else
+# `<project>/<tracking.dir>/mlflow.db`); other values go in the cell tagged `parameters`.
+# Open it in JupyterLab (`pip install -e .[lab]`), or from the project root run
+# `jupyter execute notebooks/review_runs.ipynb` (top to bottom; an error fails it),
+# `pytest --nbmake notebooks/review_runs.ipynb`, or `python notebooks/review_runs.py` (tables
+# printed). Only FINISHED runs are listed unless `all_statuses = True` (RUNNING, FAILED and
+# KILLED runs too).
 
 # %% tags=["parameters"]
-tracking_uri = None   # default: $MLFLOW_TRACKING_URI, else <project>/mlruns/mlflow.db
-experiment = None     # default: $PARTY_EXPERIMENT, else "party"
+project = None        # the repository root (params.yaml, mlruns/); default: found from the working dir
+tracking_uri = None   # default: the project's store ($MLFLOW_TRACKING_URI, tracking.uri, tracking.dir)
+experiment = None     # default: $PARTY_EXPERIMENT, else the project's tracking.experiment ("party")
 stage = None          # only runs of this stage (tags.party.stage), e.g. "train_vqvae"
 all_statuses = False  # True: also RUNNING, FAILED and KILLED runs
 max_runs = 200
@@ -43,24 +50,18 @@ import pandas as pd
 from IPython.display import HTML, Image, Video, display
 
 from party import tracking
+from party.config import open_project
 from party.render import figure_png
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-
-def project_root(start: Path) -> Path:
-    for d in [start, *start.parents]:
-        if (d / "pyproject.toml").is_file() and (d / "conf").is_dir():
-            return d
-    return start
-
-
-if tracking_uri is None:
-    root = project_root(Path.cwd().resolve())
-    tracking_uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.tracking_uri(
-        {"tracking": {"dir": str(root / "mlruns")}})
-experiment = experiment or os.environ.get("PARTY_EXPERIMENT") or "party"
+cfg = None
+if tracking_uri is None or project is not None:
+    root, cfg = open_project(project)   # also makes the project the working dir
+    print("project:", root)
+    tracking_uri = tracking_uri or tracking.tracking_uri(cfg)
+experiment = experiment or os.environ.get("PARTY_EXPERIMENT") or (cfg.tracking.experiment if cfg else "party")
 mlflow.set_tracking_uri(tracking_uri)
 client = mlflow.MlflowClient(tracking_uri)
 pd.set_option("display.width", 200)

@@ -234,17 +234,15 @@ def test_registered_generator_generates_with_nothing_else(pipeline, tmp_path):
     assert not (other / "data").exists()
 
 
-def _execute_notebook(name, work, **params):
-    """Run notebooks/<name>.py in a Jupyter kernel (as `pytest --nbmake` would), its parameters
-    cell followed by ``params``; returns (text of every output, the html and image outputs)."""
-    import jupytext
+def _execute_notebook(path):
+    """Run the notebook file ``path`` as a user does who opens it from its folder and runs every
+    cell: its own parameters, the kernel its metadata names, the working dir its folder (as
+    Jupyter and `jupyter execute` set it); returns (text of every output, the html and image outputs)."""
+    import nbformat
     from nbclient import NotebookClient
 
-    nb = jupytext.read(ROOT / "notebooks" / f"{name}.py")
-    at = next(i for i, c in enumerate(nb.cells) if "parameters" in c.metadata.get("tags", [])) + 1
-    nb.cells.insert(at, jupytext.reads("# %%\n" + "".join(f"{k} = {v!r}\n" for k, v in params.items()),
-                                       fmt="py:percent").cells[0])
-    NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(work)}}).execute()
+    nb = nbformat.read(path, as_version=4)
+    NotebookClient(nb, timeout=600, resources={"metadata": {"path": str(path.parent)}}).execute()
     outs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     text = "".join(o.get("text", "") + o.get("data", {}).get("text/plain", "") for o in outs)
     html = "".join(o.get("data", {}).get("text/html", "") for o in outs)
@@ -253,20 +251,28 @@ def _execute_notebook(name, work, **params):
 
 
 @pytest.mark.slow
-def test_notebooks_execute_on_the_pipeline_outputs(pipeline):
-    """Each notebook runs top to bottom on the tiny pipeline's data/ and mlruns/ and shows what
-    it is for: the sweep table and chart, motions side by side with their heights, TC/SC with
-    the HPF attention and PTG gate figures."""
-    work, env, _ = pipeline
-    uri = f"sqlite:///{work / 'mlruns' / 'mlflow.db'}"
-    text, html, pngs = _execute_notebook("review_runs", work, tracking_uri=uri)
+def test_notebooks_execute_as_shipped_on_the_pipeline_outputs(pipeline, monkeypatch):
+    """Each shipped notebook (the project copy's notebooks/*.ipynb), run with its own defaults from
+    notebooks/, finds the project, its MLflow store and its data, and shows what it is for: the
+    sweep table and chart, motions side by side with their heights, TC/SC with the HPF attention
+    and PTG gate figures."""
+    work, _, _ = pipeline
+    for var in ("MLFLOW_TRACKING_URI", "DVC_ROOT", "PARTY_PARAMS", "PARTY_EXPERIMENT"):
+        monkeypatch.delenv(var, raising=False)          # nothing points the kernel at the project
+    work = work.resolve()
+    notebooks = work / "notebooks"
+    assert sorted(p.name for p in notebooks.glob("*.ipynb")) == sorted(p.name for p in (ROOT / "notebooks").glob("*.ipynb"))
+    text, html, pngs = _execute_notebook(notebooks / "review_runs.ipynb")
+    assert f"project: {work}" in text and f"store: sqlite:///{work / 'mlruns' / 'mlflow.db'}" in text
     assert "sweep tiny_grid: 2 point(s)" in text and pngs >= 1          # the grid of the ablation test
     assert "train_generator" in html and "data:image/gif;base64," in html
-    text, html, pngs = _execute_notebook("generated_motions", work, project=str(work), clips=2)
-    assert html.count("data:image/gif;base64,") == 2 and pngs == 1
+    text, html, pngs = _execute_notebook(notebooks / "generated_motions.ipynb")
+    assert f"project {work};" in text
+    assert html.count("data:image/gif;base64,") == 3 and pngs == 1   # its default: 3 clips
     for m in yaml.safe_load((work / "params.yaml").read_text())["generator"]["methods"]:
         assert m in html, m                                          # a row per generated run
-    text, html, pngs = _execute_notebook("coherence_attention", work, project=str(work), tracking_uri=uri)
+    text, html, pngs = _execute_notebook(notebooks / "coherence_attention.ipynb")
+    assert f"store sqlite:///{work / 'mlruns' / 'mlflow.db'}: run " in text
     assert "tc mean" in html and "ground_truth" in html and pngs >= 2   # TC/SC chart, gate figure
     assert "data:image/png;base64," in html                             # the HPF attention maps
 
