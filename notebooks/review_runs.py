@@ -57,6 +57,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 cfg = None
+if tracking_uri is None and project is None and os.environ.get("MLFLOW_TRACKING_URI"):
+    tracking_uri = os.environ["MLFLOW_TRACKING_URI"]   # a store named outside any project
 if tracking_uri is None or project is not None:
     root, cfg = open_project(project)   # also makes the project the working dir
     print("project:", root)
