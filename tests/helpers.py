@@ -1,6 +1,10 @@
 """Fixture builders shared by tests (no network, no real dataset needed)."""
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
 import zlib
 from pathlib import Path
 
@@ -68,3 +72,41 @@ def write_humanml3d_fixture(root: Path, names_by_split: dict[str, list[str]], n_
     np.save(root / "Std.npy", (all_f.std(0) + 1e-2).astype(np.float32))
     (root / "all.txt").write_text("".join(n + "\n" for v in names_by_split.values() for n in v))
     return root
+
+
+# ----------------------------------------------------------------------------- end-to-end runs
+PROJECT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def run_checked(cmd, cwd, env, timeout=1500) -> subprocess.CompletedProcess:
+    """Run ``cmd``; assert it succeeds, showing the ends of its output if not."""
+    res = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 0, f"{' '.join(map(str, cmd))} failed:\n{res.stdout[-4000:]}\n{res.stderr[-6000:]}"
+    return res
+
+
+def e2e_env(**extra: str) -> dict:
+    """The environment of a pipeline run in a project copy: this venv's tools first on PATH, no
+    PARTY_PARAMS from outside, ``extra`` variables added."""
+    env = os.environ | {"PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg",
+                        "PARTY_NO_RENDER": "", "PYTHONUNBUFFERED": "1", **extra}
+    env.pop("PARTY_PARAMS", None)
+    return env
+
+
+def copy_project(work: Path) -> Path:
+    """A copy of the project (tracked and untracked-not-ignored files) at ``work``, committed in
+    a fresh git repository, so that runs in it leave the working tree's data/ and mlruns/ alone."""
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
+                           cwd=PROJECT, capture_output=True, text=True, check=True).stdout.split("\0")
+    for rel in filter(None, files):
+        src = PROJECT / rel
+        if src.is_file():
+            (work / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, work / rel)
+    env = e2e_env()
+    run_checked(["git", "init", "-q"], work, env)
+    run_checked(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
+    run_checked(["git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "snapshot"], work, env)
+    return work

@@ -96,7 +96,7 @@ def test_config_errors_are_one_line_naming_group_and_options(tmp_path):
     bad = party("params", "dataset=foo")
     assert bad.returncode != 0 and "Traceback" not in bad.stderr
     assert bad.stderr.strip() == ("party params: dataset=foo: no such option in conf/dataset/; "
-                                  "options: humanml3d, kit, synthetic")
+                                  "options: bvh, humanml3d, kit, synthetic")
     assert party("params").returncode == 0
     grp = party("train_vqvae", "vqvae=paper")
     assert grp.returncode != 0 and "+vqvae" not in grp.stderr

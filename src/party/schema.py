@@ -6,7 +6,7 @@ is the root (``seed``, ``progress``, ``objective``, ``paths`` and the groups ``d
 ``eval``). The schema names and types keys; **values live in conf/ only**, so no
 field carries a value default: a field is either required (``MISSING``; a nested
 group is built from its own all-``MISSING`` dataclass) or ``Optional[...] = None``
-for a key that only some group options have (``dataset.synthetic``, the CLIP-only ``text.*`` keys, the OpenAI-only
+for a key that only some group options have (``dataset.synthetic``, ``dataset.bvh``, the CLIP-only ``text.*`` keys, the OpenAI-only
 ``part_texts.*`` keys, the per-stream ``vqvae.tokenizers.<stream>`` overrides).
 A required key may be nullable (``Optional[int] = MISSING``: present, may be null).
 
@@ -204,6 +204,26 @@ class Synthetic:                            # dataset=synthetic only
     arms: Dict[str, Dict[str, Any]] = MISSING
 
 
+_AXES = ("auto", "x", "y", "z", "-x", "-y", "-z")
+
+
+@dataclass
+class Bvh:                                  # dataset=bvh only (party.data.bvh)
+    root: str = MISSING                     # folder of .bvh files and captions
+    captions: str = MISSING                 # TSV file, relative to root
+    joint_map: Any = _union(str, Dict[str, Any])   # auto | a key of maps | {t2m joint: file joint}
+    maps: Dict[str, Dict[str, Any]] = MISSING      # name -> {t2m joint: name | [names] | {between, t}}
+    unit: Any = _union(str, float)          # auto | m | cm | mm | inch | metres per file unit
+    up_axis: str = _choice(*_AXES)
+    forward_axis: str = _choice(*_AXES)
+    handedness: str = _choice("right", "left")
+    max_floor_offset: float = _POSITIVE()   # m
+    mirror: bool = MISSING
+    split: SyntheticSplit = _group(SyntheticSplit)
+    seed: int = MISSING
+    std_eps: float = _POSITIVE()
+
+
 @dataclass
 class Dataset:
     name: str = MISSING
@@ -220,6 +240,7 @@ class Dataset:
     feet_thre: float = MISSING
     parts: PartTables = _group(PartTables)
     synthetic: Optional[Synthetic] = None   # synthetic
+    bvh: Optional[Bvh] = None               # bvh
 
 
 # --------------------------------------------------------------------------- tracking, trainer
@@ -589,6 +610,17 @@ class Coherence:
 
 
 @dataclass
+class Physics:                              # eval.physics: party.evaluation.physics
+    enabled: bool = MISSING
+    length_unit: float = _POSITIVE()        # metres per joint-position unit
+    contact_height: float = _POSITIVE()
+    skate_speed: float = _range(0)
+    skate_window: int = _COUNT()
+    float_tol: float = _range(0)
+    flight_g: float = _POSITIVE()
+
+
+@dataclass
 class Efficiency:
     ait_samples: int = MISSING
     ait_warmup: int = MISSING
@@ -642,6 +674,7 @@ class Eval:
     mpjpe_scale: float = MISSING
     sources: EvalSources = _group(EvalSources)
     coherence: Coherence = _group(Coherence)
+    physics: Physics = _group(Physics)
     efficiency: Efficiency = _group(Efficiency)
     calibrate: Calibrate = _group(Calibrate)
     held_out_subset: bool = MISSING

@@ -1,8 +1,9 @@
-"""``party prepare``: generate the synthetic dataset or validate a real one.
+"""``party prepare``: generate the synthetic dataset, import BVH files, or validate a real one.
 
 Writes ``<paths.prepared>/index.json`` (clips, splits, captions) and
 ``manifest.json`` (counts, rejected files and why); for ``dataset.kind:
-synthetic`` the dataset itself goes to ``<paths.prepared>/synthetic``. The whole
+synthetic`` the dataset itself goes to ``<paths.prepared>/synthetic``, for ``bvh`` the
+imported motion capture (``party.data.bvh``) to ``<paths.prepared>/bvh``. The whole
 folder is built under a temporary name and swapped in at the end, so a crash
 leaves the previous result untouched. Logs the manifest and a few rendered
 samples to MLflow.
@@ -40,11 +41,13 @@ def build_index(cfg: DictConfig, out_dir: Path, data_root: Path, root_in_index: 
              "clips": report.clips}
     write_json(out_dir / "index.json", index, indent=None)
     counts = {}
+    motions = {c["motion"] for c in report.clips}
     for c in report.clips:
         s = counts.setdefault(c["split"], {"clips": 0, "captions": 0, "motions": set(), "mirrors": set()})
         s["clips"] += 1
         s["captions"] += len(c["captions"])
-        (s["mirrors"] if c["motion"].startswith("M") else s["motions"]).add(c["motion"])
+        mirror = c["motion"].startswith("M") and c["motion"][1:] in motions   # M<name> beside <name>
+        (s["mirrors"] if mirror else s["motions"]).add(c["motion"])
     return {
         "dataset": ds.name, "kind": ds.kind, "root": str(data_root),
         "counts": {k: {"clips": v["clips"], "captions": v["captions"], "motions": len(v["motions"]),
@@ -76,20 +79,31 @@ def run(cfg: DictConfig, run_) -> dict:
     out = Path(cfg.paths.prepared)
     t0 = time.time()
     with atomic_dir(out) as tmp:
-        gen = {}
+        gen, imported = {}, {}
         if cfg.dataset.kind == "synthetic":
             from party.data.synthetic import write_synthetic_dataset
             gen = write_synthetic_dataset(cfg.dataset, tmp / "synthetic", progress=cfg.progress)
             data_root, root_in_index = tmp / "synthetic", "synthetic"
+        elif cfg.dataset.kind == "bvh":
+            from party.data.bvh import write_bvh_dataset
+            imported = write_bvh_dataset(cfg.dataset, tmp / "bvh", progress=cfg.progress)
+            data_root, root_in_index = tmp / "bvh", "bvh"
         elif cfg.dataset.kind == "humanml3d":
             data_root = Path(cfg.dataset.root).expanduser().resolve()
             root_in_index = str(data_root)
         else:
-            raise ValueError(f"dataset.kind must be 'synthetic' or 'humanml3d', got {cfg.dataset.kind!r}")
+            raise ValueError(f"dataset.kind must be 'synthetic', 'bvh' or 'humanml3d', got {cfg.dataset.kind!r}")
         manifest = build_index(cfg, tmp, data_root, root_in_index)
         if gen:
             manifest["synthetic"] = gen
             manifest["root"] = str(out / root_in_index)   # where it lands, not the temp name
+        if imported:   # the files the import skipped count as rejects, with the BVH file named
+            manifest["rejected"] = imported["rejected"] + manifest["rejected"]
+            manifest["n_rejected"] = len(manifest["rejected"])
+            manifest["bad_caption_lines"] = imported["bad_caption_lines"] + manifest["bad_caption_lines"]
+            manifest["n_bad_caption_lines"] = len(manifest["bad_caption_lines"])
+            manifest["bvh"] = {k: v for k, v in imported.items() if k not in ("rejected", "bad_caption_lines")}
+            manifest["root"] = str(out / root_in_index)
         manifest["seconds"] = round(time.time() - t0, 2)
         write_json(tmp / "manifest.json", manifest)
     log.info("prepared %s: %s, %d rejected, %.1fs", cfg.dataset.name, manifest["counts"],
