@@ -5,7 +5,6 @@ Runs in a copy of the repository (tracked and untracked-not-ignored files), so
 the working tree's data/ and mlruns/ are untouched.
 """
 import json
-import os
 import shutil
 import sqlite3
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import copy_project, e2e_env, run_checked
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -29,28 +29,13 @@ def test_there_are_experiments_to_run():
     assert "tiny" in EXPERIMENTS
 
 
-def _sh(cmd, cwd, env, timeout=1500):
-    res = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert res.returncode == 0, f"{' '.join(cmd)} failed:\n{res.stdout[-4000:]}\n{res.stderr[-6000:]}"
-    return res
+_sh = run_checked
 
 
 @pytest.fixture(scope="module", params=EXPERIMENTS)
 def pipeline(request, tmp_path_factory):
-    work = tmp_path_factory.mktemp(f"e2e-{request.param}") / "repo"
-    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
-                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.split("\0")
-    for rel in filter(None, files):
-        src = ROOT / rel
-        if src.is_file():
-            (work / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(src, work / rel)
-    env = os.environ | {"PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg",
-                        "PARTY_NO_RENDER": "", "PYTHONUNBUFFERED": "1", "PARTY_E2E_SECRET": SECRET}
-    env.pop("PARTY_PARAMS", None)
-    _sh(["git", "init", "-q"], work, env)
-    _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
-    _sh(["git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "snapshot"], work, env)
+    work = copy_project(tmp_path_factory.mktemp(f"e2e-{request.param}") / "repo")
+    env = e2e_env(PARTY_E2E_SECRET=SECRET)
     # two method families registered from test code only (tests/methods/stub_families.py), added
     # the way a user adds a plug-in; kept in conf/local/choices.yaml for every later composition
     _sh([str(BIN / "party"), "params", f"experiment={request.param}", f"generator.plugins=[{STUBS}]",
@@ -82,8 +67,10 @@ def test_dvc_repro_runs_every_stage(pipeline):
     for m in methods:                     # every generator scored beside ground truth
         assert (work / f"data/generators/{m}/metrics.json").exists()
         assert m in metrics["results"] and "holistic" in metrics["results"][m], m
+    for source, res in metrics["results"].items():      # physical plausibility of every source
+        assert {"skate", "float", "penetrate", "jitter"} <= set(res["physics"]), source
     tables = (work / "data/eval/tables.md").read_text()
-    assert all(f"| {m} |" in tables for m in methods)
+    assert all(f"| {m} |" in tables for m in methods) and "### Physical plausibility" in tables
 
 
 @pytest.mark.slow

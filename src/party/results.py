@@ -43,7 +43,9 @@ REFERENCE = "ground_truth"
 METRICS = {"top1": ("R-Precision Top 1", 1), "top2": ("R-Precision Top 2", 1), "top3": ("R-Precision Top 3", 1),
            "fid": ("FID", -1), "mm_dist": ("MM-Dist", -1), "diversity": ("Diversity", 0),
            "multimodality": ("MultiModality", 1), "tc": ("Temporal Coherence (TC)", 1),
-           "sc": ("Spatial Coherence (SC)", 1)}
+           "sc": ("Spatial Coherence (SC)", 1), "skate": ("Foot skating (m/s)", -1),
+           "skate_ratio": ("Skating ratio", -1), "float": ("Floating (m)", -1),
+           "penetrate": ("Penetration (m)", -1), "jitter": ("Jitter (m/s³)", -1)}
 ARROW = {1: "↑", -1: "↓", 0: "→"}
 PRECISION_PARTS = {"vqvae": "tokenizers (vqvae)", "generator": "generators", "evaluator": "evaluators",
                    "text": "text encoder (text.precision)", "evaluator_text": "evaluators' text encoder",
@@ -215,8 +217,8 @@ def compare(results: Mapping, path: Sequence[str], metric: str) -> dict | None:
 
 def claims(snapshot: Mapping) -> list[dict]:
     """{"table", "title", "comparisons": [compare(...)]} per table of the evaluation that ranks
-    methods: Table 1 (whole-body evaluator), Table 2 (each part's evaluator), Table 3 (coherence)
-    and every subset of clips (``eval.subsets``)."""
+    methods: Table 1 (whole-body evaluator), Table 2 (each part's evaluator), Table 3 (coherence),
+    physical plausibility and every subset of clips (``eval.subsets``)."""
     ev = snapshot.get("evaluation") or {}
     res, whole, parts = ev.get("results") or {}, ev.get("whole_stream"), ev.get("part_streams") or []
     tables = []
@@ -230,6 +232,8 @@ def claims(snapshot: Mapping) -> list[dict]:
             [([whole], m) for m in ("top1", "top2", "top3", "fid", "mm_dist", "diversity", "multimodality")])
     add("Table 2", "part-level metrics", [([p], m) for p in parts for m in ("top1", "top3", "fid", "mm_dist")])
     add("Table 3", "coherence-level metrics", [(["coherence"], m) for m in ("tc", "sc")])
+    add("Physical plausibility", "foot skating, floating, penetration, jitter",
+        [(["physics"], m) for m in ("skate", "skate_ratio", "float", "penetrate", "jitter")])
     for subset in (ev.get("summary") or {}).get("subsets") or {}:
         add(f"Subset `{subset}`", "retrieval metrics on its clips",
             [([subset, s], m) for s in ([whole] if whole else []) + list(parts) for m in ("top1", "top3", "fid", "mm_dist")])

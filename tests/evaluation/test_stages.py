@@ -103,8 +103,11 @@ def test_evaluate_stage_all_sources(trained, monkeypatch):
     assert gt["top1"]["n"] == 3 and gt["top3"]["mean"] > 0.5
     assert same["diversity"]["mean"] == 0.0 and same["fid"]["mean"] > 10 * res["copy"]["holistic"]["fid"]["mean"]
     assert same["top3"]["mean"] < 0.3                                      # one motion for every caption
-    assert set(res["recon_arms"]) == {"arms", "reconstruction"}            # part recon: its own evaluator
-    assert set(res["recon_legs"]) == {"reconstruction"}                    # no legs evaluator trained here
+    assert set(res["recon_arms"]) == {"arms", "reconstruction", "physics"}  # part recon: its own evaluator
+    assert set(res["recon_legs"]) == {"reconstruction", "physics"}         # no legs evaluator trained here
+    for source, blocks in res.items():                                     # every source, with 95% CIs
+        assert {"skate", "float", "penetrate", "jitter"} <= set(blocks["physics"]), source
+        assert blocks["physics"]["jitter"]["n"] == 3 and blocks["physics"]["jitter"]["ci95"] >= 0
     assert out["efficiency"]["tokenizers"]["legs"]["window"] == 12
     assert res["recon_holistic"]["reconstruction"]["mpjpe_mm"]["mean"] > 0
     assert {"tc", "sc"} <= set(res["ground_truth"]["coherence"]) and "coherence" not in res["recon_arms"]
@@ -119,7 +122,7 @@ def test_evaluate_stage_all_sources(trained, monkeypatch):
     assert dvc["copy"]["arms"]["top1"] == float(f"{res['copy']['arms']['top1']['mean']:.4g}")
     assert dvc["recon_holistic"]["reconstruction"]["mpjpe_mm"] > 0 and "ci95" not in json.dumps(dvc)
     tables = (tmp / "eval/tables.md").read_text()
-    for title in ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Efficiency"):
+    for title in ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Physical plausibility", "Efficiency"):
         assert title in tables, title
     assert out["summary"]["n_clips"] < 256 and "B = 256" not in tables      # B = 256 needs >= 256 clips
     assert "| copy | ✓ | ✓ | ✓ |" in tables and "| Real motion | Arms |" in tables
@@ -326,9 +329,10 @@ def test_protocol_shares_merge_to_the_whole(trained, tmp_path):
     a = run_protocol_on(cfg, inp, ["holistic"], streams, extras=True, mpjpe={"legs"})
     b = run_protocol_on(cfg, inp, ["arms"], streams, extras=False, mpjpe={"arms"}, position=1)
     assert "coherence" not in b["half"] and "recon_legs" not in b and "recon_arms" not in a   # own evaluator only
+    assert "physics" not in b["half"] and "physics" in b["recon_arms"] and "physics" in a["recon_legs"]
     merged = merge_results([b, a], inp.source_order, streams)
     assert json.dumps(merged) == json.dumps(whole)
-    assert list(whole["half"]) == ["holistic", "arms", "coherence", "even"]
+    assert list(whole["half"]) == ["holistic", "arms", "coherence", "physics", "even"]
     assert "multimodality" in whole["noisy"]["holistic"] and "reconstruction" in whole["recon_legs"]
 
 
@@ -362,7 +366,8 @@ def test_protocol_reads_the_whole_body_stream_from_the_layout(trained, tmp_path)
             for s, src in inp.tokenizers.items()}
     embedders = {name.get(s, s): Embedder(ev, cfg.eval.embed_batch_size) for s, ev in inp.evaluators.items()}
     res = run_protocol(OmegaConf.to_container(cfg.eval, resolve=True), inp.gt, embedders, toks, inp.generated,
-                       inp.parts, inp.sc_ref, body.n_joints, body.layout, progress=False, subsets={"even": subset})
+                       inp.parts, inp.sc_ref, body.n_joints, body.layout, progress=False, subsets={"even": subset},
+                       physics=inp.physics)
 
     def renamed(d):
         return {name.get(k, k): renamed(v) for k, v in d.items()} if isinstance(d, dict) else d

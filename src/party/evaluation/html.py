@@ -29,13 +29,17 @@ import numpy as np
 from party.evaluation.report import TABLE_LEGEND
 from party.render import CENTER_COLOR, LEFT_COLOR, PLAIN_TEXT, RIGHT_COLOR, TRAJ_COLOR, figure_png
 
-#: (stream or 'coherence', metric, label, higher is better)
+#: (stream, 'coherence' or 'physics', metric, label, higher is better)
 CHART_METRICS = (("{whole}", "top1", "R-Precision Top 1 ({whole})", True),
                  ("{whole}", "fid", "FID ({whole})", False),
                  ("{whole}", "mm_dist", "MM-Dist ({whole})", False),
                  ("{part}", "top1", "R-Precision Top 1 ({part})", True),
                  ("coherence", "tc", "TC", True),
-                 ("coherence", "sc", "SC", True))
+                 ("coherence", "sc", "SC", True),
+                 ("physics", "skate", "Foot skating (m/s)", False),
+                 ("physics", "float", "Floating (m)", False),
+                 ("physics", "penetrate", "Penetration (m)", False),
+                 ("physics", "jitter", "Jitter (m/s³)", False))
 
 _SCRIPT = """<script>
 window.addEventListener('load', function () {

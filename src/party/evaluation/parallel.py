@@ -13,9 +13,10 @@ the one-process result exactly, whatever the number of workers (a test checks it
     results, sc_ref = run_shared(cfg, inputs, workers=3)
 
 Shares: the whole-body stream (``PartLayout.whole_stream``; ``holistic`` in the default layout)
-alone, first, with TC/SC and MultiModality (which read its evaluator), the other streams dealt
-round-robin over the other workers; a tokenizer's reconstruction error is computed in the share
-scoring its stream (else the first). What every share repeats: the draws, the whole-body
+alone, first, with TC/SC, the physics metrics and MultiModality (which reads its evaluator), the
+other streams dealt round-robin over the other workers; a tokenizer's reconstruction error and the
+physics metrics of its reconstructions are computed in the share scoring its stream (else the
+first). What every share repeats: the draws, the whole-body
 tokenizer's reconstructions (each evaluator scores them), loading. Each worker loads
 what it needs itself (``spawn``: nothing of the parent's torch state is inherited) and runs
 ``max(1, threads // workers)`` threads.
@@ -47,6 +48,7 @@ class ProtocolInputs:
     tokenizers: dict
     generated: list
     subsets: dict            # {name: (clip ids, description)}
+    physics: object = None   # PhysicsSetup of the dataset, or None (eval.physics off)
 
     @property
     def source_order(self) -> list[str]:
@@ -56,11 +58,14 @@ class ProtocolInputs:
 def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_reference: bool = True) -> ProtocolInputs:
     """Everything ``run_protocol`` reads, from config: the evaluators of ``streams`` (default
     ``evaluator.streams``), the SC reference when ``sc_reference`` (fitting it takes a few seconds),
-    ground truth, tokenizer reconstructions, generated runs and the held-out subsets."""
+    ground truth, tokenizer reconstructions, generated runs, the held-out subsets and the physics
+    metrics' setup (the dataset's foot joints and fps, ``eval.physics``)."""
     from party.data.context import load_context
     from party.evaluation.loading import (coherence_parts, fit_sc_reference, held_out_subsets, load_evaluators,
                                           tokenizer_sources)
+    from party.evaluation.physics import PhysicsSetup
     from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
+    from party.motion import get_skeleton
     from party.training import resolve_device
 
     ec = cfg.eval
@@ -86,7 +91,10 @@ def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_refere
     if clash:
         raise ValueError(f"generated runs need unique names other than {sorted(reserved)}; clashing: {clash} "
                          f"(set `name` in their index.json)")
-    return ProtocolInputs(ctx, device, evaluators, parts, sc_ref, gt, toks, generated, held_out_subsets(cfg, ctx))
+    physics = (PhysicsSetup.from_config(ec.physics, get_skeleton(ctx.index.skeleton), ctx.index.fps)
+               if ec.physics.enabled else None)
+    return ProtocolInputs(ctx, device, evaluators, parts, sc_ref, gt, toks, generated, held_out_subsets(cfg, ctx),
+                          physics)
 
 
 def protocol_workers(setting: int | None, device: torch.device, n_streams: int) -> int:
@@ -112,7 +120,8 @@ def run_protocol_on(cfg: DictConfig, inp: ProtocolInputs, streams: list[str] | N
                         {s: Embedder(ev, ec.embed_batch_size) for s, ev in evs.items()}, inp.tokenizers,
                         inp.generated, inp.parts, inp.sc_ref, inp.ctx.n_joints, inp.ctx.layout,
                         progress=cfg.progress, subsets={k: ids for k, (ids, _) in inp.subsets.items()},
-                        stream_order=stream_order, extras=extras, mpjpe=mpjpe, position=position)
+                        stream_order=stream_order, extras=extras, mpjpe=mpjpe, position=position,
+                        physics=inp.physics)
 
 
 def _share(cfg: dict, streams: list[str], stream_order: list[str], extras: bool, mpjpe: set[str], threads: int,

@@ -12,8 +12,9 @@ runs with repeats.
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -22,6 +23,7 @@ from tqdm import tqdm
 from party.evaluation import metrics as M
 from party.evaluation.coherence import Parts, SCReference, spatial_coherence, temporal_coherence
 from party.evaluation.evaluator import Evaluator
+from party.evaluation.physics import PhysicsSetup, physics_sums, pooled
 from party.evaluation.sources import GeneratedSource, MotionSet, content_key, first_unseen
 from party.evaluation.stats import aggregate
 
@@ -97,31 +99,86 @@ def motion_joints(feats: list[np.ndarray], n_joints: int) -> list[np.ndarray]:
     return [recover_from_ric_np(f.astype(np.float32), n_joints) for f in feats]
 
 
-class CoherenceScorer:
-    """Per-motion TC and SC, memoised by feature content like ``Embedder``."""
+class JointScorer(ABC):
+    """Scores computed per motion on its joint positions, memoised by feature content like
+    ``Embedder``: ``add`` scores new motions, ``score`` a set's metrics from the memo;
+    ``score_blocks`` recovers each new motion's joints once for several scorers."""
 
-    def __init__(self, parts: Parts, sc_ref: SCReference | None, c: Mapping, n_joints: int):
-        self.parts, self.sc_ref, self.c, self.n_joints = parts, sc_ref, c, n_joints
-        self.cache: dict[bytes, tuple[float, float]] = {}
+    block: str                       # the results key: results[source][block][metric]
+
+    def __init__(self, n_joints: int):
+        self.n_joints = n_joints
+        self.cache: dict[bytes, object] = {}
+
+    @abstractmethod
+    def add(self, keys: Sequence[bytes], joints: Sequence[np.ndarray]) -> None:
+        """Score the motions ``keys`` (not in the memo yet) from their (T, J, 3) ``joints``."""
+
+    @abstractmethod
+    def score(self, keys: Sequence[bytes]) -> dict[str, float]:
+        """The metrics of the set of (memoised) motions ``keys``."""
 
     def __call__(self, ms: MotionSet) -> dict[str, float]:
+        return score_blocks(ms, [self])[self.block]
+
+
+def score_blocks(ms: MotionSet, scorers: Sequence[JointScorer]) -> dict[str, dict[str, float]]:
+    """{scorer.block: metrics of ``ms``}; the motions some scorer has not seen are recovered to
+    joints once and given to the scorers lacking them."""
+    keys = ms.content_keys
+    todo = {k: i for k, i in first_unseen(keys, {}).items() if any(k not in s.cache for s in scorers)}
+    if todo:
+        joints = dict(zip(todo, motion_joints([ms.feats[i] for i in todo.values()], scorers[0].n_joints),
+                          strict=True))
+        for s in scorers:
+            new = [k for k in todo if k not in s.cache]
+            if new:
+                s.add(new, [joints[k] for k in new])
+    return {s.block: s.score(keys) for s in scorers}
+
+
+class CoherenceScorer(JointScorer):
+    """Per-motion TC and SC; a set's TC / SC: the mean over its motions."""
+
+    block = "coherence"
+
+    def __init__(self, parts: Parts, sc_ref: SCReference | None, c: Mapping, n_joints: int):
+        super().__init__(n_joints)
+        self.parts, self.sc_ref, self.c = parts, sc_ref, c
+
+    def add(self, keys: Sequence[bytes], joints: Sequence[np.ndarray]) -> None:
         c = self.c
-        keys, feats = ms.content_keys, ms.feats
-        todo = list(first_unseen(keys, self.cache).items())
-        if todo:
-            joints = motion_joints([feats[i] for _, i in todo], self.n_joints)
-            tc = temporal_coherence(joints, self.parts, float(c["sigma"]), float(c["kappa"]), int(c["window"]),
-                                    int(c["tau_max"]), float(c["eps"]), c.get("stride"))
-            sc = np.full(len(todo), np.nan)
-            if self.sc_ref is not None:
-                sc = spatial_coherence(joints, self.parts, self.sc_ref, float(c["beta_d"]), float(c["beta_theta"]),
-                                       float(c["eps"]))
-            self.cache.update({k: (float(a), float(b)) for (k, _), a, b in zip(todo, tc, sc, strict=True)})
+        tc = temporal_coherence(joints, self.parts, float(c["sigma"]), float(c["kappa"]), int(c["window"]),
+                                int(c["tau_max"]), float(c["eps"]), c.get("stride"))
+        sc = np.full(len(keys), np.nan)
+        if self.sc_ref is not None:
+            sc = spatial_coherence(joints, self.parts, self.sc_ref, float(c["beta_d"]), float(c["beta_theta"]),
+                                   float(c["eps"]))
+        self.cache.update({k: (float(a), float(b)) for k, a, b in zip(keys, tc, sc, strict=True)})
+
+    def score(self, keys: Sequence[bytes]) -> dict[str, float]:
         vals = np.array([self.cache[k] for k in keys])
         out = {"tc": float(np.nanmean(vals[:, 0]))}
         if self.sc_ref is not None:
             out["sc"] = float(np.nanmean(vals[:, 1]))
         return out
+
+
+class PhysicsScorer(JointScorer):
+    """Per-motion (sum, count) pairs of the physical plausibility metrics
+    (``party.evaluation.physics``); a set's metric pools every frame of its motions."""
+
+    block = "physics"
+
+    def __init__(self, setup: PhysicsSetup, n_joints: int):
+        super().__init__(n_joints)
+        self.setup = setup
+
+    def add(self, keys: Sequence[bytes], joints: Sequence[np.ndarray]) -> None:
+        self.cache.update(zip(keys, physics_sums(joints, self.setup), strict=True))
+
+    def score(self, keys: Sequence[bytes]) -> dict[str, float]:
+        return pooled(np.stack([self.cache[k] for k in keys]))
 
 
 def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizers: dict,
@@ -130,8 +187,9 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                  progress: bool = True, subsets: Mapping[str, set[str]] | None = None,
                  stream_order: list[str] | None = None, extras: bool = True,
                  mpjpe: set[str] | None = None, position: int = 0,
-                 whole_stream: str | None = None) -> dict[str, dict[str, dict]]:
-    """-> {source: {stream|'coherence'|'reconstruction': {metric: {mean, ci95, n}}, <subset>: {stream: ...}}}
+                 whole_stream: str | None = None, physics: PhysicsSetup | None = None) -> dict[str, dict[str, dict]]:
+    """-> {source: {stream|'coherence'|'physics'|'reconstruction': {metric: {mean, ci95, n}},
+    <subset>: {stream: ...}}}
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
     (the same draws and embeddings; R-Precision pools within the subset, FID against the
@@ -146,7 +204,12 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     depend on how the streams are shared out.
 
     ``whole_stream``: the whole-body stream (default: ``layout.whole_stream``); every evaluator scores
-    its tokenizer's reconstructions, TC/SC score them, MultiModality reads its evaluator."""
+    its tokenizer's reconstructions, TC/SC score them, MultiModality reads its evaluator.
+
+    ``physics`` (with ``cfg['physics']['enabled']``): the physical plausibility metrics
+    (``party.evaluation.physics``) of every source, memoised per motion like TC/SC: ground truth
+    and generated runs where the extras are computed, each tokenizer's reconstructions where its
+    reconstruction error is (``mpjpe``)."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
@@ -154,6 +217,8 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     order_streams = list(stream_order or embedders)
     scorer = (CoherenceScorer(parts, sc_ref, coh, n_joints)
               if extras and coh["enabled"] and parts is not None else None)
+    phys = PhysicsScorer(physics, n_joints) if physics is not None and cfg["physics"]["enabled"] else None
+    whole_body = [s for s in (scorer, phys) if s is not None] if extras else []   # ground truth, generated
     recon_errors: dict[str, dict[bytes, tuple[float, float, int]]] = defaultdict(dict)
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
     desc = "replications" + (f" ({', '.join(embedders)})" if list(embedders) != order_streams else "")
@@ -162,22 +227,23 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
         stream_seeds = ss.spawn(len(order_streams))
         gt = gt_src.draw(rng)
         gt_ref = gt_src.draw(rng)
-        sets: dict[str, tuple[MotionSet, list[str], bool]] = {}
+        # name -> (motions, evaluator streams scoring them, joint scorers scoring them)
+        sets: dict[str, tuple[MotionSet, list[str], list[JointScorer]]] = {}
         if cfg["sources"]["ground_truth"]:
-            sets["ground_truth"] = (gt, list(embedders), True)
+            sets["ground_truth"] = (gt, list(embedders), whole_body)
         for stream, src in tokenizers.items():
             streams = list(embedders) if stream == whole else [s for s in embedders if s == stream]
             own_error = mpjpe is None or stream in mpjpe
-            full_body = stream == whole and scorer is not None
-            if not (streams or own_error or full_body):
+            joint_scorers = [s for s, on in ((scorer, stream == whole), (phys, own_error)) if s is not None and on]
+            if not (streams or own_error or joint_scorers):
                 continue
             rec = src.reconstruct(gt)
-            sets[f"recon_{stream}"] = (rec, streams, stream == whole)
+            sets[f"recon_{stream}"] = (rec, streams, joint_scorers)
             if own_error:
                 rows[f"recon_{stream}"]["reconstruction"].append(
                     reconstruction_metrics(rec, gt, layout, n_joints, cfg, recon_errors[stream], whole_stream=whole))
         for g in generated:
-            sets[g.name] = (g.draw(rng), list(embedders), True)
+            sets[g.name] = (g.draw(rng), list(embedders), whole_body)
         for stream, emb in embedders.items():
             srng = np.random.default_rng(stream_seeds[order_streams.index(stream)])
             m_ref = emb.motions(gt_ref)
@@ -196,10 +262,10 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                     for k, (ids, sref) in sub_refs.items():
                         r = _rows_of(ms, ids)
                         sub_rows[name][k][stream].append(retrieval_metrics(t[r], m[r], sref, cfg, srng))
-        if scorer is not None:
-            for name, (ms, _, full_body) in sets.items():
-                if full_body:
-                    rows[name]["coherence"].append(scorer(ms))
+        for name, (ms, _, joint_scorers) in sets.items():
+            if joint_scorers:
+                for block, vals in score_blocks(ms, joint_scorers).items():
+                    rows[name][block].append(vals)
     z = float(cfg["ci_z"])
     order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
     out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
@@ -218,11 +284,11 @@ def merge_results(shares: list[dict[str, dict[str, dict]]], source_order: list[s
                   stream_order: list[str]) -> dict[str, dict[str, dict]]:
     """The results of protocol shares as one ``run_protocol`` result, in one order whatever the
     sharing: sources in ``source_order``, then per source: reconstruction, the streams in
-    ``stream_order``, coherence, subsets (each subset's streams in ``stream_order``)."""
+    ``stream_order``, coherence, physics, subsets (each subset's streams in ``stream_order``)."""
     def rank(key: str) -> tuple[int, int]:
         if key in stream_order:
             return 1, stream_order.index(key)
-        return {"reconstruction": (0, 0), "coherence": (2, 0)}.get(key, (3, 0))
+        return {"reconstruction": (0, 0), "coherence": (2, 0), "physics": (2, 1)}.get(key, (3, 0))
 
     merged: dict[str, dict[str, dict]] = {}
     for name in source_order:

@@ -1,4 +1,5 @@
-"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5.
+"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5, and a physical
+plausibility table (``physics_table``; the paper reports none).
 
 The stream names come from the caller (``dataset.parts.streams``, see ``PartLayout``): Table 1
 reads the whole-body stream's evaluator (``whole_stream``), Table 2 the part streams'
@@ -54,8 +55,9 @@ def row_kind(source: str) -> str:
 
 
 def fmt(stat: Mapping | None, digits: int = 3) -> str:
-    """{'mean', 'ci95'} -> '0.511±.003' (paper style); missing -> '-'."""
-    if not stat or stat.get("mean") is None:
+    """{'mean', 'ci95'} -> '0.511±.003' (paper style); missing or not finite (e.g. foot skating of
+    a motion set that never touches the floor) -> '-'."""
+    if not _finite(stat):
         return "-"
     ci = f"{stat.get('ci95', 0.0):.{digits}f}"
     return f"{stat['mean']:.{digits}f}±{ci[1:] if ci.startswith('0.') else ci}"
@@ -253,6 +255,37 @@ def table3(results: Mapping) -> str:
                         ["Method", "Temporal Coherence (TC) ↑", "Spatial Coherence (SC) ↑"], rows)
 
 
+#: (metric of ``results[source]['physics']``, header, scale from the stored unit, digits)
+PHYSICS_COLUMNS = (("skate", "Foot skating (m/s) ↓", 1.0, 3), ("skate_ratio", "Skating ratio ↓", 1.0, 3),
+                   ("float", "Floating (mm) ↓", 1e3, 1), ("penetrate", "Penetration (mm) ↓", 1e3, 1),
+                   ("jitter", "Jitter (m/s³) ↓", 1.0, 1))
+PHYSICS_NOTE = ("Lower is better in every column; Real motion is the reference (kinematic data is not free of "
+                "these artefacts either). Foot skating: mean horizontal speed of the foot joints in contact "
+                "(below `eval.physics.contact_height` in two adjacent frames; PhysDiff's Skate as a speed), the "
+                "primary skating number; skating ratio: share of frames with a foot sliding (GMD); floating: "
+                "height of the lowest joint above `eval.physics.float_tol`, frames in free flight left out; "
+                "penetration: depth of the lowest joint below the floor (PhysDiff); jitter: mean jerk of every "
+                "joint (TransPose). docs/evaluation.md.")
+
+
+def _scaled(stat: Mapping | None, scale: float) -> Mapping | None:
+    if not stat or stat.get("mean") is None:
+        return stat
+    return {**stat, "mean": stat["mean"] * scale, "ci95": float(stat.get("ci95") or 0.0) * scale}
+
+
+def physics_table(results: Mapping) -> str:
+    """Physical plausibility of every source (``results[source]['physics']``): reconstructions and
+    real motion as references, the generated runs ranked (lower is better in every column)."""
+    rows = [Row([label(s)] + [Num(_scaled(d["physics"].get(k), scale), digits)
+                              for k, _, scale, digits in PHYSICS_COLUMNS], row_kind(s))
+            for s, d in results.items() if "physics" in d]
+    if not rows:
+        return ""
+    return ranked_table("Physical plausibility", ["Method"] + [h for _, h, _, _ in PHYSICS_COLUMNS], rows,
+                        notes=[PHYSICS_NOTE])
+
+
 def table4(results: Mapping, efficiency: Mapping) -> str:
     rows = []
     for src, d in results.items():
@@ -333,7 +366,7 @@ def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str
     ``PartLayout.whole_stream`` / ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description}
     of ``run_protocol``'s subsets."""
     parts = [header, TABLE_LEGEND, table1(results, whole_stream, large), table2(results, part_streams),
-             table3(results)]
+             table3(results), physics_table(results)]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))
     if switches:
@@ -365,7 +398,7 @@ def calibration_tables(rows: list[Mapping], recommended: Mapping[str, Mapping]) 
 
 
 def dvc_metrics(results: dict, digits: int) -> dict[str, dict]:
-    """{source: {stream | coherence | reconstruction: {metric: mean}, <subset>: {...}}}: the means
+    """{source: {stream | coherence | physics | reconstruction: {metric: mean}, <subset>: {...}}}: the means
     of ``results`` rounded to ``digits`` significant digits, one file per source for DVC
     (``dvc metrics show`` reads it as one row per source, ``dvc exp show`` as columns)."""
     def lean(node):
