@@ -95,12 +95,15 @@ def rank(stats: Sequence[Mapping | None], better: str, target: float | None = No
     vals = [(i, float(s["mean"]), float(s.get("ci95") or 0.0)) for i, s in enumerate(stats) if _finite(s)]
     if not vals or (better == "target" and target is None):
         return None, []
+    best, m_best, c_best = min(vals, key=lambda v: score(v[1], better, target))
+    return best, [i for i, m, c in vals
+                  if i != best and score(m, better, target) - score(m_best, better, target) <= c + c_best]
 
-    def score(m: float) -> float:                   # lower is better
-        return -m if better == "higher" else m if better == "lower" else abs(m - float(target))
 
-    best, m_best, c_best = min(vals, key=lambda v: score(v[1]))
-    return best, [i for i, m, c in vals if i != best and score(m) - score(m_best) <= c + c_best]
+def score(mean: float, better: str, target: float | None = None) -> float:
+    """``mean`` as a number where lower is better: ``better`` 'higher', 'lower' or 'target'
+    (the distance to ``target``)."""
+    return -mean if better == "higher" else mean if better == "lower" else abs(mean - float(target))
 
 
 def _value(stat: Mapping, digits: int) -> str:
