@@ -10,7 +10,9 @@
     party stages                      list the stages, with their inputs and outputs (dvc.yaml)
     party exp show [--metrics a,b]    `dvc exp show` that fits a screen: headline metrics and the
                                       params that differ (`party exp show --help`)
-    party sweep-status <out_dir>      a grid's points: done / running / failed / pending
+    party sweep-status <out_dir>      a grid's points: done / running / failed / pending (and SLURM jobs)
+    party submit <stage> [...]        the stage as a SLURM job; a grid stage as a job array
+                                      (`party submit --help`; party.slurm)
     party repro [-j N] [stage ...]    dvc repro with up to N independent stages at once
     party results [--check]           docs/results.md (+ its snapshot docs/results.json) from the outputs
     party convert-checkpoint --trust IN OUT
@@ -292,6 +294,9 @@ def _main(argv: list[str] | None = None) -> int:
         return 0
     if cmd == "sweep-status":
         return cmd_sweep_status(rest)
+    if cmd == "submit":
+        from party.slurm import main as submit_main
+        return submit_main(rest)
     if cmd == "exp":
         from party.exp_view import main as exp_main
         return exp_main(rest)

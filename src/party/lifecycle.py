@@ -32,9 +32,10 @@ def close_orphans(client, stage: str | None, when: str | None = None) -> list[st
     this host, is gone (``kill -9``, the OOM killer, a crash the process could not report): the
     next start of any stage (``stage``, named in the note it leaves), or the next opening of the
     store (``when`` says by what: ``party.tracking.store.close_orphans_once``), cleans up after
-    it, so the UI and ``search_runs`` never show a dead run as running. Runs of other hosts
-    (multi-node), of live processes, or without the ``party.process`` tag (older versions) are
-    left alone. Returns the run ids it closed."""
+    it, so the UI and ``search_runs`` never show a dead run as running. A grid's parent run
+    submitted to SLURM (tag ``party.slurm_job``: the job that ends it) is closed once SLURM no
+    longer lists that job as alive. Runs of other hosts (multi-node), of live processes, or
+    without either tag (older versions) are left alone. Returns the run ids it closed."""
     import socket
 
     host = socket.gethostname()
@@ -45,11 +46,17 @@ def close_orphans(client, stage: str | None, when: str | None = None) -> list[st
     for r in runs:
         key = r.data.tags.get("party.process", "")
         pid = key.split(":", 1)[0]
-        if not pid.isdigit() or process_key(int(pid)) == key:
+        job = r.data.tags.get("party.slurm_job", "")
+        if not key and job:                 # a grid's parent run, ended by its SLURM job (party.slurm)
+            from party import slurm
+            if not slurm.available() or slurm.job_alive(job):
+                continue
+            why = f"SLURM job {job}, which was to end this run, is gone (cancelled?)"
+        elif not pid.isdigit() or process_key(int(pid)) == key:
             continue
-        client.set_tag(r.info.run_id, "party.error",
-                       f"process {pid} on {host} ended without closing this run (killed?); "
-                       f"marked KILLED {when or f'when {stage} next started'}")
+        else:
+            why = f"process {pid} on {host} ended without closing this run (killed?)"
+        client.set_tag(r.info.run_id, "party.error", f"{why}; marked KILLED {when or f'when {stage} next started'}")
         client.set_terminated(r.info.run_id, "KILLED")
         closed.append(r.info.run_id)
         named.append(f"{r.data.tags.get('party.stage', '?')} {r.info.run_id}")

@@ -35,6 +35,13 @@ claims the next point that is neither done (same config) nor running in a live w
 under an exclusive lock on ``<out_dir>/.status.lock`` (read, claim, write), so no point runs
 twice; a ``running`` entry whose process is gone (same host) is claimed again. Every worker
 writes the tables when it runs out of points; the last one to finish writes them complete.
+
+SLURM arrays (``party submit``, ``party.slurm``): with ``$PARTY_SWEEP_TASK`` = a point's index
+the process runs that point only (unless it is done), its run nested under ``$PARTY_SWEEP_PARENT``
+(the stage opens no run of its own); with ``collect`` it runs no point, writes the tables into the
+parent run and fails naming every point not done. ``status.json`` then also holds the jobs
+(``slurm``) and each point's job (``slurm_job``); a point whose job SLURM no longer lists as alive
+is claimed again.
 """
 from __future__ import annotations
 
@@ -55,6 +62,7 @@ from omegaconf import OmegaConf
 from party import tracking
 from party.io import write_text
 from party.names import check_name
+from party.slurm import COLLECT, PARENT_ENV, TASK_ENV
 
 log = logging.getLogger(__name__)
 _MISSING = object()
@@ -133,6 +141,11 @@ def tables(rows: list[dict], spec: dict, columns: Sequence[str], notes: str = ""
     return md, buf.getvalue()
 
 
+def _numbers(label: str, row: dict) -> dict:
+    """A row's numbers as metrics of the parent run: ``<label>.<column>``."""
+    return {f"{label}.{k}": v for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
 def _point_key(pcfg) -> str:
     import hashlib
     import json
@@ -169,6 +182,9 @@ def _worker_alive(entry: dict) -> bool:
     other than this one (this process runs one grid at a time); another host's worker counts as live."""
     from party.io import pid_alive
     w = entry.get("worker") or {}
+    if w.get("slurm_job"):                  # a SLURM job: alive while SLURM lists it so, unless it is this
+        from party.slurm import current_job, job_alive      # job (requeued: its earlier run is gone)
+        return w["slurm_job"] != current_job() and job_alive(w["slurm_job"])
     if w.get("host") != socket.gethostname():
         return bool(w)
     return w.get("pid") != os.getpid() and pid_alive(int(w.get("pid", -1)))
@@ -178,13 +194,81 @@ def status_table(status: dict) -> str:
     """The points of ``status.json`` as a text table (what ``party sweep-status`` prints)."""
     points = status.get("points", {})
     lines = [f"sweep {status.get('name', '?')}: " + ", ".join(
-        f"{sum(1 for p in points.values() if p['status'] == k)} {k}" for k in ("done", "running", "failed", "pending"))]
+        f"{sum(1 for p in points.values() if p['status'] == k)} {k}"
+        for k in ("done", "running", "failed", "queued", "pending")
+        if k != "queued" or any(p["status"] == k for p in points.values()))]
+    sl = status.get("slurm")
+    jobs = {label: (p.get("worker") or {}).get("slurm_job") or p.get("slurm_job") for label, p in points.items()}
+    states: dict[str, str] = {}
+    if sl:
+        lines.append(f"  SLURM: array {sl.get('array') or '-'}, table job {sl.get('collect')}, parent run "
+                     f"{sl.get('parent_run')}, submitted {sl.get('submitted')}")
+        try:
+            from party.slurm import job_states
+            states = job_states([j for j in [*jobs.values(), sl.get("collect")] if j])
+        except Exception as e:  # noqa: BLE001 - the file's status still prints
+            lines.append(f"  (SLURM not asked: {e})")
+        if sl.get("collect"):
+            lines[-1] += f" ({states.get(str(sl['collect']), 'ended')})"
     for label, p in points.items():
         w = p.get("worker") or {}
         extra = p.get("error") or " ".join(x for x in (p.get("run_id"), p["status"] == "running" and w
                                                         and f"pid {w.get('pid')}@{w.get('host')}") if x)
-        lines.append(f"  {label:<24} {p['status']:<8} {p.get('finished') or p.get('started') or '':<20} {extra}")
+        job = f"job {jobs[label]} {states.get(str(jobs[label]), 'ended')} " if sl and jobs[label] else ""
+        lines.append(f"  {label:<24} {p['status']:<8} {p.get('finished') or p.get('started') or '':<20} {job}{extra}")
     return "\n".join(lines)
+
+
+def _point_configs(cfg, spec: dict) -> tuple[list[dict], dict, dict]:
+    """The grid's points, each point's config (``apply_overrides``, every key checked) and its hash."""
+    points = expand(spec)
+    pcfgs = {p["label"]: apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}") for p in points}
+    return points, pcfgs, {label: _point_key(c) for label, c in pcfgs.items()}
+
+
+def _reusable(entry: dict, key: str) -> bool:
+    """Done with this config for the point, its row kept."""
+    return entry.get("status") == "done" and entry.get("key") == key and "row" in entry
+
+
+def pending(cfg, spec: dict, out_dir: str | Path) -> list[int]:
+    """Indices (in ``expand`` order) of the points a run of the grid would train: neither done with
+    their current config nor running in a live worker."""
+    points, _, keys = _point_configs(cfg, spec)
+    old = read_status(out_dir).get("points", {})
+    todo = []
+    for i, p in enumerate(points):
+        e = old.get(p["label"], {"status": "pending"})
+        if _reusable(e, keys[p["label"]]) or (e["status"] == "running" and _worker_alive(e)):
+            continue
+        todo.append(i)
+    return todo
+
+
+def record_submission(out_dir: str | Path, spec: dict, info: dict) -> None:
+    """Record a SLURM submission in ``status.json``: the jobs (``slurm``) and, for each submitted
+    point (``info["points"]``: label -> array task), ``queued`` with its job."""
+    out = Path(out_dir)
+    with _locked(out):
+        old = read_status(out)
+        points = {p["label"]: old.get("points", {}).get(p["label"], {"status": "pending"}) for p in expand(spec)}
+        for label, job in info.get("points", {}).items():
+            points[label] = {"status": "queued", "slurm_job": job}
+        _write_status(out, {"name": spec["name"], "sweep": spec["path"], "points": points,
+                            "slurm": {k: v for k, v in info.items() if k != "points"}})
+
+
+def _array_task(points: list[dict]) -> tuple[str | None, str | None]:
+    """(mode, point label) of a SLURM array task (``$PARTY_SWEEP_TASK``): ("point", label),
+    ("collect", None), or (None, None) outside an array."""
+    task = os.environ.get(TASK_ENV)
+    if task is None:
+        return None, None
+    if task == COLLECT:
+        return COLLECT, None
+    if not task.isdigit() or int(task) >= len(points):
+        raise ValueError(f"${TASK_ENV}={task!r}: not a point of this grid (0..{len(points) - 1}) or {COLLECT!r}")
+    return "point", points[int(task)]["label"]
 
 
 def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], dict], out_dir: str | Path,
@@ -194,30 +278,38 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
 
     Call inside the sweep's (parent) run: the parent gets ``sweep.yaml``, one metric per
     point it ran and column that is a number, and the tables."""
-    points = expand(spec)
+    points, pcfgs, keys = _point_configs(cfg, spec)
     by_label = {p["label"]: p for p in points}
-    pcfgs = {p["label"]: apply_overrides(cfg, p["overrides"], f"{spec['path']} point {p['label']}") for p in points}
-    keys = {label: _point_key(c) for label, c in pcfgs.items()}
+    mode, only = _array_task(points)
     out = Path(out_dir)
-    parent = tracking.active_run_id()
+    if mode == "point" and not tracking.is_rank_zero():
+        # another DDP rank of the point's job (srun): the same training; rank zero keeps the books
+        p = by_label[only]
+        return [{"point": only, **p["axes"], **point_fn(pcfgs[only], p, tracking.NullRun(only))}]
+    parent = (os.environ.get(PARENT_ENV) if mode == "point" else None) or tracking.active_run_id()
     tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
     me = {"host": socket.gethostname(), "pid": os.getpid()}
+    from party.slurm import current_job
+    if current_job():
+        me["slurm_job"] = current_job()
     began = time.time()
     now = lambda: time.strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
     tried: set[str] = set()
 
     def current() -> dict:
-        """status.json with exactly this grid's points (stale entries of points no longer in the grid dropped)."""
-        old = read_status(out).get("points", {})
+        """status.json with exactly this grid's points (stale entries of points no longer in the grid
+        dropped), and its SLURM jobs if any."""
+        st = read_status(out)
+        old = st.get("points", {})
         return {"name": spec["name"], "sweep": spec["path"],
-                "points": {label: old.get(label, {"status": "pending"}) for label in by_label}}
+                "points": {label: old.get(label, {"status": "pending"}) for label in by_label},
+                **({"slurm": st["slurm"]} if "slurm" in st else {})}
 
     def reusable(label: str, e: dict) -> bool:
-        """Done with this grid's config for the point, its row kept."""
-        return e["status"] == "done" and e.get("key") == keys[label] and "row" in e
+        return _reusable(e, keys[label])
 
     def claimable(label: str, e: dict) -> bool:
-        if label in tried:
+        if label in tried or mode == COLLECT or (mode == "point" and label != only):
             return False
         if e["status"] == "done":
             return not reusable(label, e)
@@ -271,8 +363,7 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
             raise
         entry.update(status="done", finished=now(), finished_ts=time.time(), row=row)
         record(label, entry)
-        tracking.log_metrics({f"{label}.{k}": v for k, v in row.items()
-                              if isinstance(v, (int, float)) and not isinstance(v, bool)})
+        tracking.log_metrics(_numbers(label, row))
 
     with _locked(out):
         status = current()
@@ -281,6 +372,8 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
         for label, e in status["points"].items():
             if reusable(label, e):
                 rows.append(e["row"])
+                if mode == COLLECT:
+                    tracking.log_metrics(_numbers(label, e["row"]))
                 continue
             state = e["status"] if e["status"] != "done" else "stale"
             (failed if state == "failed" else busy).append(label)
@@ -291,6 +384,15 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
     tracking.log_file(out / "table.md")
     tracking.log_file(out / "table.csv")
     tracking.log_file(out / "status.json")
+    if mode == "point":
+        if only in failed:
+            raise RuntimeError(f"sweep {spec['name']}: point {only} failed; see {out / 'status.json'}")
+        return rows
+    if mode == COLLECT and (failed or busy):
+        states = ", ".join(f"{lab} {status['points'][lab]['status']}" for lab in failed + busy)
+        raise RuntimeError(f"sweep {spec['name']}: {len(failed) + len(busy)} of {len(points)} points did not finish "
+                           f"({states}); see {out / 'status.json'}; submit the grid again to run them (finished "
+                           "points are reused)")
     if busy:
         log.warning("sweep %s: %d point(s) still running in other workers (%s); the last worker to finish "
                     "writes the complete table", spec["name"], len(busy), ", ".join(busy))

@@ -34,14 +34,19 @@ from party.stage import stage
 from party.sweep import load_sweep, run_grid
 
 
+def grid(cfg) -> tuple[dict, Path]:
+    """The grid ``generator.ablation.sweep`` names and its folder (``party submit`` runs it as a SLURM array)."""
+    spec = load_sweep(cfg.generator.ablation.sweep, required=("method",))
+    return spec, Path(cfg.generator.ablation.out_dir) / spec["name"]
+
+
 @stage("gen_ablation", run_name=lambda cfg: f"gen_ablation-{Path(cfg.generator.ablation.sweep).stem}")
 def run(cfg, run_) -> list[dict]:
     ab = cfg.generator.ablation
-    spec = load_sweep(ab.sweep, required=("method",))
+    spec, out = grid(cfg)
     method = str(spec["method"])
     if method not in cfg.generator.methods:
         raise KeyError(f"{spec['path']}: method {method!r} is not in generator.methods ({sorted(cfg.generator.methods)})")
-    out = Path(ab.out_dir) / spec["name"]
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
     score = generation_scorer(cfg, ab.replications)
     ctx = load_context(cfg)

@@ -66,11 +66,16 @@ def _notes(spec: dict) -> str:
             + "\n".join(dvc_commands(spec, expand(spec))) + "\n```\n")
 
 
+def grid(cfg) -> tuple[dict, Path]:
+    """The grid ``vqvae.ablation.sweep`` names and its folder (``party submit`` runs it as a SLURM array)."""
+    spec = load_sweep(cfg.vqvae.ablation.sweep, required=("stream",))
+    return spec, Path(cfg.vqvae.ablation.out_dir) / spec["name"]
+
+
 @stage("vq_ablation", run_name=lambda cfg: f"vq_ablation-{Path(cfg.vqvae.ablation.sweep).stem}")
 def run(cfg, run_) -> list[dict]:
-    spec = load_sweep(cfg.vqvae.ablation.sweep, required=("stream",))
+    spec, out = grid(cfg)
     stream = spec["stream"]
-    out = Path(cfg.vqvae.ablation.out_dir) / spec["name"]
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"vq_ablation-{spec['name']}"})
     scorers: dict[str, object] = {}
 

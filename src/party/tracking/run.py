@@ -85,6 +85,17 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
 
     import mlflow
 
+    from party.slurm import COLLECT, PARENT_ENV, TASK_ENV
+    if os.environ.get(TASK_ENV) is not None and parent_run_id is None and mlflow.active_run() is None:
+        # a task of a grid's SLURM array (party.slurm): a point's task opens no stage run (the
+        # point's run nests under the grid's parent); the collecting task continues the parent
+        if os.environ[TASK_ENV] != COLLECT:
+            yield NullRun(name)
+        else:
+            with _continue_run(cfg, os.environ[PARENT_ENV]) as run:
+                yield run
+        return
+
     uri = resolve_uri(cfg)
     _ORPHANS_CLOSED.add(uri)     # closed below at every start, the note naming this stage
     _set_tracking_uri(mlflow, uri)
@@ -124,6 +135,72 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
         raise
     else:
         mlflow.end_run("FINISHED")
+
+
+@contextlib.contextmanager
+def _continue_run(cfg, run_id: str) -> Iterator[Any]:
+    """Make the existing run ``run_id`` active again, ending it FINISHED (FAILED, KILLED) like ``start_run``."""
+    import mlflow
+    _set_tracking_uri(mlflow, resolve_uri(cfg))
+    mlflow.start_run(run_id=run_id)
+    run = _party_run_cls()(mlflow.active_run())
+    try:
+        yield run
+    except BaseException as e:
+        killed = isinstance(e, KeyboardInterrupt) or bool(_SIGNALLED)
+        _SIGNALLED.clear()
+        mlflow.end_run("KILLED" if killed else "FAILED")
+        raise
+    else:
+        mlflow.end_run("FINISHED")
+
+
+def create_run(cfg, stage: str, run_name: str, tags: Mapping[str, Any] = ()) -> str | None:
+    """A run left RUNNING for other processes to nest under and end (a grid submitted as a SLURM
+    array: its jobs' point runs nest under it, the collecting job ends it): ``start_run``'s tags,
+    params and ``config.yaml``, no ``party.process`` tag (``close_orphans`` keys it by its
+    ``party.slurm_job``). None when tracking is disabled."""
+    t = _tcfg(cfg)
+    if not t["enabled"]:
+        return None
+    import socket
+
+    import mlflow
+    from mlflow.entities import Param
+
+    uri = resolve_uri(cfg)
+    _set_tracking_uri(mlflow, uri)       # set_run_tags / end_run of this process use the same store
+    client = mlflow.MlflowClient(uri)
+    exp_id = _experiment_id(t["experiment"], uri)
+    all_tags = {"party.stage": stage, **_git_state(), "party.host": socket.gethostname(),
+                **{k: str(v) for k, v in dict(tags).items()}}
+    run = client.create_run(exp_id, run_name=run_name, tags=all_tags)
+    params = [Param(k, v) for k, v in flatten_config(cfg).items()]
+    for i in range(0, len(params), 100):
+        client.log_batch(run.info.run_id, params=params[i:i + 100])
+    client.log_text(run.info.run_id, _config_yaml(cfg), "config.yaml")
+    return run.info.run_id
+
+
+def _client():
+    """A client of the store this process set (``create_run``, ``start_run``)."""
+    import mlflow
+    return mlflow.MlflowClient()
+
+
+def set_run_tags(run_id: str, tags: Mapping[str, Any]) -> None:
+    """Tags on a run that is not this process's active run (``create_run``'s)."""
+    client = _client()
+    for k, v in tags.items():
+        client.set_tag(run_id, k, str(v))
+
+
+def end_run(run_id: str, status: str, error: str | None = None) -> None:
+    """End a run that is not this process's active run, with ``status`` (and ``party.error``)."""
+    client = _client()
+    if error:
+        client.set_tag(run_id, "party.error", error[:4000])
+    client.set_terminated(run_id, status)
 
 
 _PARTY_RUN_CLS = None
