@@ -2,9 +2,20 @@
 # Set up the environment and run the whole test suite (fast tests + the
 # end-to-end `dvc repro` test). Extra arguments go to pytest, e.g.
 #   bash scripts/test.sh -m "not slow"     # fast tests only
+# The SLURM tests run against a one-node cluster this script starts (scripts/slurm_local.sh:
+# installs slurm-wlm and munge when root with apt-get) and stops at the end; where it cannot
+# start, they skip. PARTY_NO_SLURM=1 leaves SLURM alone.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/system_deps.sh      # blender for the BVH import check (skips cleanly without it)
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
-exec .venv/bin/python -m pytest "$@"
+if [ -z "${PARTY_NO_SLURM:-}" ]; then
+  trap 'bash scripts/slurm_local.sh stop' EXIT
+  if bash scripts/slurm_local.sh start; then
+    eval "$(bash scripts/slurm_local.sh env)"
+  else
+    echo "no local SLURM cluster: the SLURM tests will skip"
+  fi
+fi
+.venv/bin/python -m pytest "$@"

@@ -64,7 +64,7 @@ def test_every_party_command_in_readme_exists():
 
     commands = set(re.findall(r"`party ([a-z_-]+)", README.read_text()))
     known = set(cli.available_stages()) | {"params", "stages", "sweep-status", "repro", "convert-checkpoint",
-                                           "generate", "results", "exp"}
+                                           "generate", "results", "exp", "submit"}
     source = (PKG / "cli.py").read_text()
     for c in commands - set(cli.available_stages()):
         assert f'"{c}"' in source, f"README names `party {c}`, which cli.py does not handle"

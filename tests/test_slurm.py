@@ -145,9 +145,10 @@ def test_submit_dry_run_writes_an_array_and_a_table_job(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A SLURM cluster that answers (``$SLURM_CONF``, else scripts/slurm_local.sh's), or a skip."""
-    if not os.environ.get("SLURM_CONF") and LOCAL_CONF.exists():
-        os.environ["SLURM_CONF"] = str(LOCAL_CONF)
+    """scripts/slurm_local.sh's cluster (never a real one the machine may also reach), or a skip."""
+    if not LOCAL_CONF.exists():
+        pytest.skip(f"no local SLURM cluster ({LOCAL_CONF} missing): bash scripts/slurm_local.sh start")
+    os.environ["SLURM_CONF"] = str(LOCAL_CONF)
     if not slurm.available():
         pytest.skip("no SLURM client commands (sbatch, squeue): `bash scripts/slurm_local.sh start` installs "
                     "and starts a one-node cluster")
@@ -177,7 +178,8 @@ def _project(tmp_path, name, *overrides):
 
 def _party(proj, env, *args, timeout=900):
     r = subprocess.run([str(BIN / "party"), *args], cwd=proj, env=env, capture_output=True, text=True, timeout=timeout)
-    assert r.returncode == 0, f"party {' '.join(args)}: exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-5000:]}"
+    assert r.returncode == 0, (f"party {' '.join(args)}: exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-5000:]}"
+                               f"\n{_logs(proj, 4000) if (proj / 'logs' / 'slurm').is_dir() else ''}")
     return r
 
 
@@ -254,7 +256,8 @@ def test_ddp_through_srun_equals_one_process(cluster, tmp_path):
 @pytest.mark.slow
 def test_a_training_stage_runs_ddp_as_one_slurm_job(cluster, tmp_path):
     """``party submit train_evaluator`` with two tasks and trainer.devices=2: one job, two ranks,
-    one MLflow run (rank zero's), the outputs written once."""
+    one MLflow run (rank zero's), the outputs written once; then the same with ``--multirun
+    hydra/launcher=slurm_local`` (Hydra's submitit launcher)."""
     import mlflow
 
     proj, env = _project(tmp_path, "ddp")
@@ -273,4 +276,14 @@ def test_a_training_stage_runs_ddp_as_one_slurm_job(cluster, tmp_path):
     runs = client.search_runs([exp.experiment_id], "tags.`party.stage` = 'train_evaluator'")
     assert [x.info.status for x in runs] == ["FINISHED"], [x.info.status for x in runs]
     json.loads((out / "metrics.json").read_text())
+    # the same through Hydra's submitit launcher (it waits on the job itself)
+    r = _party(proj, env, "train_evaluator", "--multirun", "hydra/launcher=slurm_local",
+               "hydra.launcher.tasks_per_node=2", "trainer.accelerator=cpu", "trainer.devices=2",
+               "trainer.strategy=ddp", "evaluator.train.max_steps=3", "evaluator.movement_pretrain.max_steps=2",
+               f"evaluator.out_dir={proj / 'ev2'}")
+    logs = "".join(p.read_text() for p in (proj / "multirun").rglob("*_log.out"))
+    assert "global_rank=1(2)" in logs and "Starting with 2 processes" in logs, r.stdout[-3000:] + logs[-3000:]
+    assert (proj / "ev2" / "holistic" / "finest.tar").exists()
+    runs = client.search_runs([exp.experiment_id], "tags.`party.stage` = 'train_evaluator'")
+    assert [x.info.status for x in runs] == ["FINISHED", "FINISHED"]
     shutil.rmtree(proj / "resume", ignore_errors=True)
