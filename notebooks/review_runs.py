@@ -20,7 +20,7 @@
 # `mlruns/artifacts/`; see `docs/tracking.md`), lists the runs of an experiment, tables
 # their metrics per stage, shows which params differ between runs of a stage (ablations),
 # groups sweep children under their parent run, and plays the newest logged sample video.
-# Everything is local: no server, no network. With its defaults it finds the project from the
+# No server needed (a tracking server's URI works too). With its defaults it finds the project from the
 # working dir (the root or `notebooks/`) and opens the store its stages log to
 # (`party.tracking.tracking_uri`: `$MLFLOW_TRACKING_URI`, else `tracking.uri`, else
 # `<project>/<tracking.dir>/mlflow.db`); other values go in the cell tagged `parameters`.

@@ -15,11 +15,15 @@ def register_model(run, artifact_path: str, name: str, tags: Mapping[str, Any] |
     from mlflow.exceptions import MlflowException
 
     client = mlflow.MlflowClient()
-    with _store_lock(mlflow.get_tracking_uri()):
+    with _store_lock(mlflow.get_tracking_uri()):   # a SQLite store's; a server has none of ours
         try:
             client.get_registered_model(name)
         except MlflowException:
-            client.create_registered_model(name, description="party generator packages (party register)")
+            try:
+                client.create_registered_model(name, description="party generator packages (party register)")
+            except MlflowException as e:    # another job registered it meanwhile (a tracking server)
+                if e.error_code != "RESOURCE_ALREADY_EXISTS":
+                    raise
     mv = client.create_model_version(name, f"{run.info.artifact_uri.rstrip('/')}/{artifact_path}",
                                      run_id=run.info.run_id, description=description,
                                      tags={k: str(v) for k, v in (tags or {}).items()})

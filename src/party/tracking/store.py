@@ -115,7 +115,9 @@ def _sqlite_path(uri: str) -> Path | None:
 
 
 def artifact_location(uri: str) -> str | None:
-    """Artifact root for experiments we create: ``<db dir>/artifacts`` for SQLite stores."""
+    """Artifact root for experiments we create: ``<db dir>/artifacts`` for SQLite stores; None for a
+    tracking server, which picks its own (``mlflow-artifacts:/`` when it serves the artifacts,
+    ``scripts/mlflow_server.sh``): clients then up- and download them through it."""
     db = _sqlite_path(uri)
     return None if db is None else (db.parent / "artifacts").resolve().as_uri()
 
@@ -172,7 +174,8 @@ def relocate_store(uri: str) -> int:
     other location (a server's, an artifact root configured on purpose elsewhere, whose runs'
     files are still there and not here) is left as it is. Returns the rows changed. Opening the
     store this way (``scripts/mlflow_ui.sh`` does) also ends the runs of dead processes
-    (``close_orphans_once``)."""
+    (``close_orphans_once``). Any other URI (a tracking server: its artifacts are its own) has
+    nothing to relocate: 0."""
     db = _sqlite_path(uri)
     if db is None or not db.exists():
         return 0
@@ -239,14 +242,23 @@ EXPERIMENT_KIND, MODEL_TRAINING = "mlflow.experimentKind", "custom_model_develop
 
 def _experiment_id(name: str, uri: str) -> str:
     import mlflow
+    from mlflow.exceptions import MlflowException
 
     with _store_lock(uri):  # the client creates (and migrates) a new store eagerly
         relocate_store(uri)
         client = mlflow.MlflowClient(uri)
         exp = client.get_experiment_by_name(name)
         if exp is None:
-            return client.create_experiment(name, artifact_location=artifact_location(uri),
-                                            tags={EXPERIMENT_KIND: MODEL_TRAINING})
+            try:
+                return client.create_experiment(name, artifact_location=artifact_location(uri),
+                                                tags={EXPERIMENT_KIND: MODEL_TRAINING})
+            except MlflowException as e:
+                # a server's store has no lock of ours: a job on another node created it meanwhile
+                if e.error_code != "RESOURCE_ALREADY_EXISTS":
+                    raise
+                exp = client.get_experiment_by_name(name)
+                if exp is None:
+                    raise
         if EXPERIMENT_KIND not in exp.tags:
             client.set_experiment_tag(exp.experiment_id, EXPERIMENT_KIND, MODEL_TRAINING)
     if exp.lifecycle_stage == "deleted":
