@@ -52,6 +52,8 @@ SlurmdPort=$((PORT + 1))
 SlurmUser=$(id -un)
 SlurmdUser=$(id -un)
 AuthType=auth/munge
+# a requeued job waits this long before it starts again (SLURM's default 120 s)
+AuthInfo=cred_expire=10
 StateSaveLocation=$D/state
 SlurmdSpoolDir=$D/spool
 SlurmctldPidFile=$D/slurmctld.pid

@@ -33,3 +33,27 @@ def _seed_global_rngs():
         sys.modules["numpy"].random.seed(0)
     if "torch" in sys.modules:
         sys.modules["torch"].manual_seed(0)
+
+
+@pytest.fixture(scope="session")
+def slurm_cluster() -> dict:
+    """The one-node cluster of scripts/slurm_local.sh (``scripts/test.sh`` starts it), never a real
+    cluster the machine may also reach: ``$SLURM_CONF`` set to its config (here and in the returned
+    environment for subprocesses), or a skip naming what is missing."""
+    import shutil
+    import subprocess
+    conf = Path(os.environ.get("PARTY_SLURM_DIR", "/tmp/party-slurm")) / "slurm.conf"
+    if not conf.exists():
+        pytest.skip(f"no local SLURM cluster ({conf} missing): bash scripts/slurm_local.sh start")
+    if not all(shutil.which(c) for c in ("sinfo", "sbatch", "squeue", "scontrol", "srun")):
+        pytest.skip("no SLURM client commands (sinfo, sbatch, squeue, scontrol, srun): "
+                    "bash scripts/slurm_local.sh start installs them")
+    os.environ["SLURM_CONF"] = str(conf)
+    try:
+        r = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=10)
+    except subprocess.TimeoutExpired:
+        pytest.skip("sinfo did not answer in 10 s: no SLURM controller (bash scripts/slurm_local.sh start)")
+    if r.returncode != 0 or not r.stdout.strip():
+        pytest.skip(f"the local SLURM cluster does not answer ({(r.stderr or r.stdout).strip()[:200]}): "
+                    "bash scripts/slurm_local.sh start")
+    return dict(os.environ)

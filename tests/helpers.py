@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
+import socket
 import subprocess
 import sys
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -110,3 +113,61 @@ def copy_project(work: Path) -> Path:
     run_checked(["git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A"], work, env)
     run_checked(["git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "snapshot"], work, env)
     return work
+
+
+# --------------------------------------------------------------------------- scripts/mlflow_server.sh
+
+MLFLOW_SERVER_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "mlflow_server.sh"
+# variables that would send a worker's runs elsewhere or make it a non-zero rank
+_SERVER_STRIP = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "MLFLOW_RUN_ID", "DVC_ROOT", "DVC_EXP_NAME", "RANK",
+          "LOCAL_RANK", "NODE_RANK", "SLURM_PROCID", "PARTY_MLFLOW_HOST", "PARTY_MLFLOW_PORT", "PARTY_MLFLOW_DIR",
+          "PARTY_MLFLOW_WORKERS", "PARTY_MLFLOW_ALLOWED_HOSTS")
+
+
+def server_env(**extra: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in _SERVER_STRIP}
+    env.update(PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", **extra)
+    return env
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class MlflowServer:
+    uri: str
+    dir: Path
+    env: dict
+
+    def script(self, cmd: str, **extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(MLFLOW_SERVER_SCRIPT), cmd], env=self.env | extra, capture_output=True, text=True,
+                              timeout=240)
+
+
+def start_mlflow_server(d: Path, host: str = "127.0.0.1") -> "MlflowServer":
+    """scripts/mlflow_server.sh's server in folder ``d`` on a free port (its ``uri`` as the script prints it)."""
+    env = server_env(PARTY_MLFLOW_DIR=str(d), PARTY_MLFLOW_PORT=str(free_port()), PARTY_MLFLOW_HOST=host)
+    srv = MlflowServer("", d, env)
+    r = srv.script("start")
+    assert r.returncode == 0, f"mlflow_server.sh start failed:\n{r.stdout}\n{r.stderr}"
+    srv.uri = re.search(r"tracking URI: (\S+)", r.stdout).group(1)
+    return srv
+
+
+def stop_mlflow_server(srv: "MlflowServer") -> None:
+    """Stop it through the script; its process group must be gone."""
+    pid = int((srv.dir / "server.pid").read_text())
+    r = srv.script("stop")
+    assert r.returncode == 0 and "stopped" in r.stdout, r.stdout + r.stderr
+    assert not (srv.dir / "server.pid").exists()
+    try:
+        os.killpg(pid, 0)
+    except ProcessLookupError:
+        pass                                # the server and its workers are gone
+    else:
+        raise AssertionError(f"mlflow server process group {pid} still alive after stop")
+    r = srv.script("status")
+    assert r.returncode == 1 and "not running" in r.stdout, r.stdout

@@ -18,7 +18,6 @@ from party.sweep import load_sweep, read_status, record_submission, run_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-LOCAL_CONF = Path(os.environ.get("PARTY_SLURM_DIR", "/tmp/party-slurm")) / "slurm.conf"
 
 
 # --------------------------------------------------------------------------- no cluster needed
@@ -143,25 +142,6 @@ def test_submit_dry_run_writes_an_array_and_a_table_job(tmp_path, monkeypatch):
 
 # --------------------------------------------------------------------------- the local cluster
 
-@pytest.fixture(scope="module")
-def cluster():
-    """scripts/slurm_local.sh's cluster (never a real one the machine may also reach), or a skip."""
-    if not LOCAL_CONF.exists():
-        pytest.skip(f"no local SLURM cluster ({LOCAL_CONF} missing): bash scripts/slurm_local.sh start")
-    os.environ["SLURM_CONF"] = str(LOCAL_CONF)
-    if not slurm.available():
-        pytest.skip("no SLURM client commands (sbatch, squeue): `bash scripts/slurm_local.sh start` installs "
-                    "and starts a one-node cluster")
-    try:
-        r = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=10)
-    except subprocess.TimeoutExpired:
-        pytest.skip("sinfo did not answer in 10 s: no SLURM controller (bash scripts/slurm_local.sh start)")
-    if r.returncode != 0 or not r.stdout.strip():
-        pytest.skip(f"no SLURM cluster answers ({(r.stderr or r.stdout).strip()[:200]}): "
-                    "bash scripts/slurm_local.sh start")
-    return os.environ["SLURM_CONF"]
-
-
 def _project(tmp_path, name, *overrides):
     from party.config import write_params
     proj = tmp_path / name
@@ -189,12 +169,14 @@ def _logs(proj, tail: int | None = None) -> str:
 
 
 @pytest.mark.slow
-def test_a_grid_as_a_slurm_array_equals_the_local_run(cluster, tmp_path):
-    """A two-point grid (two seeds of the tiny holistic tokenizer): run locally, and submitted as an
-    array (one task per point) plus the table job; the tables agree, the points' runs nest under one
-    parent run that ends FINISHED, ``party sweep-status`` names the jobs."""
+def test_a_grid_as_a_slurm_array_equals_the_local_run(slurm_cluster, tmp_path):
+    """A two-point grid (two seeds of the tiny holistic tokenizer): run locally into the SQLite store,
+    and submitted as an array (one task per point) plus the table job, every job logging to one
+    tracking server (scripts/mlflow_server.sh). The tables agree; the points' runs nest under one
+    parent run that ends FINISHED; ``party sweep-status`` names the jobs."""
     import mlflow
 
+    from helpers import start_mlflow_server, stop_mlflow_server
     grid = tmp_path / "seeds.yaml"
     grid.write_text("name: seeds\nstream: holistic\nfixed: [vqvae.train.max_steps=4]\n"
                     "axes:\n  seed: {s1: [seed=1], s2: [seed=2]}\n")
@@ -202,30 +184,39 @@ def test_a_grid_as_a_slurm_array_equals_the_local_run(cluster, tmp_path):
     _party(local, lenv, "prepare")
     _party(local, lenv, "vq_ablation")
     arr, aenv = _project(tmp_path, "array", f"vqvae.ablation.sweep={grid}")
-    r = _party(arr, aenv, "submit", "vq_ablation", "--launcher", "slurm_local", "--wait")
-    assert "array " in r.stdout and "ended:" in r.stdout, r.stdout
-    status = read_status(arr / "abl" / "seeds")
-    sl = status["slurm"]
-    assert {p: e["status"] for p, e in status["points"].items()} == {"s1": "done", "s2": "done"}, _logs(arr, 3000)
-    assert [e["worker"]["slurm_job"] for e in status["points"].values()] == [f"{sl['array']}_0", f"{sl['array']}_1"]
-    want = (local / "abl" / "seeds" / "table.csv").read_text()
-    assert (arr / "abl" / "seeds" / "table.csv").read_text() == want
-    st = _party(arr, aenv, "sweep-status", str(arr / "abl" / "seeds")).stdout
-    assert f"array {sl['array']}" in st and f"job {sl['array']}_1 COMPLETED" in st, st
-    client = mlflow.MlflowClient(f"sqlite:///{arr / 'mlruns' / 'mlflow.db'}")
-    parent = client.get_run(sl["parent_run"])
-    assert parent.info.status == "FINISHED" and parent.data.tags["party.slurm_job"] == sl["collect"]
-    kids = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
-    assert sorted(k.data.tags["party.sweep_point"] for k in kids) == ["s1", "s2"]
-    assert all(k.info.status == "FINISHED" for k in kids)
-    assert not client.search_runs([parent.info.experiment_id], "attributes.status = 'RUNNING'")
-    # submitted again: nothing to run, only the table job
-    r = _party(arr, aenv, "submit", "vq_ablation", "--launcher", "slurm_local", "--wait")
-    assert "every point done" in r.stdout and (arr / "abl" / "seeds" / "table.csv").read_text() == want
+    srv = start_mlflow_server(tmp_path / "server")
+    try:
+        aenv["MLFLOW_TRACKING_URI"] = srv.uri
+        r = _party(arr, aenv, "submit", "vq_ablation", "--launcher", "slurm_local", "--wait")
+        assert "array " in r.stdout and "ended:" in r.stdout, r.stdout
+        status = read_status(arr / "abl" / "seeds")
+        sl = status["slurm"]
+        assert {p: e["status"] for p, e in status["points"].items()} == {"s1": "done", "s2": "done"}, _logs(arr, 3000)
+        assert [e["worker"]["slurm_job"] for e in status["points"].values()] == [f"{sl['array']}_0",
+                                                                                  f"{sl['array']}_1"]
+        want = (local / "abl" / "seeds" / "table.csv").read_text()
+        assert (arr / "abl" / "seeds" / "table.csv").read_text() == want
+        st = _party(arr, aenv, "sweep-status", str(arr / "abl" / "seeds")).stdout
+        assert f"array {sl['array']}" in st and f"job {sl['array']}_1 COMPLETED" in st, st
+        client = mlflow.MlflowClient(srv.uri)
+        parent = client.get_run(sl["parent_run"])
+        assert parent.info.status == "FINISHED" and parent.data.tags["party.slurm_job"] == sl["collect"]
+        kids = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent.info.run_id}'")
+        assert sorted(k.data.tags["party.sweep_point"] for k in kids) == ["s1", "s2"]
+        assert all(k.info.status == "FINISHED" for k in kids)
+        assert not client.search_runs([parent.info.experiment_id], "attributes.status = 'RUNNING'")
+        table = client.download_artifacts(parent.info.run_id, "table.csv", str(tmp_path))
+        assert Path(table).read_text() == want
+        assert not (arr / "mlruns" / "mlflow.db").exists()          # nothing went to a local store
+        # submitted again: nothing to run, only the table job
+        r = _party(arr, aenv, "submit", "vq_ablation", "--launcher", "slurm_local", "--wait")
+        assert "every point done" in r.stdout and (arr / "abl" / "seeds" / "table.csv").read_text() == want
+    finally:
+        stop_mlflow_server(srv)
 
 
 @pytest.mark.slow
-def test_ddp_through_srun_equals_one_process(cluster, tmp_path):
+def test_ddp_through_srun_equals_one_process(slurm_cluster, tmp_path):
     """tests/generator/ddp_equivalence.py as one SLURM job of two tasks (srun; Lightning's SLURM
     environment gives the ranks) against one process: the weights agree."""
     script = ROOT / "tests" / "generator" / "ddp_equivalence.py"
@@ -254,7 +245,7 @@ def test_ddp_through_srun_equals_one_process(cluster, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_training_stage_runs_ddp_as_one_slurm_job(cluster, tmp_path):
+def test_a_training_stage_runs_ddp_as_one_slurm_job(slurm_cluster, tmp_path):
     """``party submit train_evaluator`` with two tasks and trainer.devices=2: one job, two ranks,
     one MLflow run (rank zero's), the outputs written once; then the same with ``--multirun
     hydra/launcher=slurm_local`` (Hydra's submitit launcher)."""

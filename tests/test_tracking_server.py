@@ -7,15 +7,11 @@ from __future__ import annotations
 import base64
 import json
 import os
-import re
-import shutil
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -23,66 +19,19 @@ from omegaconf import OmegaConf
 
 from party import tracking
 
+from helpers import (MlflowServer, free_port, server_env, start_mlflow_server,  # noqa: E402
+                     stop_mlflow_server)
+
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "scripts" / "mlflow_server.sh"
-LOCAL_SLURM_CONF = Path(os.environ.get("PARTY_SLURM_DIR", "/tmp/party-slurm")) / "slurm.conf"
 # variables that would send a worker's runs elsewhere or make it a non-zero rank
-_STRIP = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "MLFLOW_RUN_ID", "DVC_ROOT", "DVC_EXP_NAME", "RANK",
-          "LOCAL_RANK", "NODE_RANK", "SLURM_PROCID", "PARTY_MLFLOW_HOST", "PARTY_MLFLOW_PORT", "PARTY_MLFLOW_DIR",
-          "PARTY_MLFLOW_WORKERS", "PARTY_MLFLOW_ALLOWED_HOSTS")
-
-
-def _env(**extra: str) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in _STRIP}
-    env.update(PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", **extra)
-    return env
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@dataclass
-class Server:
-    uri: str
-    dir: Path
-    env: dict
-
-    def script(self, cmd: str, **extra: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["bash", str(SCRIPT), cmd], env=self.env | extra, capture_output=True, text=True,
-                              timeout=240)
-
-
-def _start(d: Path, host: str = "127.0.0.1") -> Server:
-    env = _env(PARTY_MLFLOW_DIR=str(d), PARTY_MLFLOW_PORT=str(_free_port()), PARTY_MLFLOW_HOST=host)
-    srv = Server("", d, env)
-    r = srv.script("start")
-    assert r.returncode == 0, f"mlflow_server.sh start failed:\n{r.stdout}\n{r.stderr}"
-    srv.uri = re.search(r"tracking URI: (\S+)", r.stdout).group(1)
-    return srv
-
-
-def _stop(srv: Server) -> None:
-    pid = int((srv.dir / "server.pid").read_text())
-    r = srv.script("stop")
-    assert r.returncode == 0 and "stopped" in r.stdout, r.stdout + r.stderr
-    assert not (srv.dir / "server.pid").exists()
-    with pytest.raises(ProcessLookupError):
-        os.killpg(pid, 0)                   # the server and its workers are gone
-    r = srv.script("status")
-    assert r.returncode == 1 and "not running" in r.stdout, r.stdout
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """A server started through the script on a free port in a tmp dir; stopped through it after."""
-    srv = _start(tmp_path_factory.mktemp("server") / "srv")
+    srv = start_mlflow_server(tmp_path_factory.mktemp("server") / "srv")
     try:
         yield srv
     finally:
-        _stop(srv)
+        stop_mlflow_server(srv)
 
 
 def make_cfg(uri: str | None, experiment: str, **extra):
@@ -156,7 +105,7 @@ def test_a_server_that_cannot_start_fails_with_its_log(tmp_path):
     d = tmp_path / "srv"
     d.mkdir()
     (d / "mlflow.db").write_text("not a database")
-    srv = Server("", d, _env(PARTY_MLFLOW_DIR=str(d), PARTY_MLFLOW_PORT=str(_free_port())))
+    srv = MlflowServer("", d, server_env(PARTY_MLFLOW_DIR=str(d), PARTY_MLFLOW_PORT=str(free_port())))
     r = srv.script("start")
     assert r.returncode == 1, r.stdout + r.stderr
     assert "exited before answering" in r.stderr and f"last lines of {d}/server.log" in r.stderr
@@ -168,7 +117,7 @@ def test_a_server_that_cannot_start_fails_with_its_log(tmp_path):
 def test_four_processes_log_to_one_server_at_once(server, tmp_path):
     """Four processes start runs (creating the experiment at the same time), log their config,
     30 metric steps one request each and artifacts: every run FINISHED, nothing lost."""
-    steps, env = 30, _env(MLFLOW_TRACKING_URI=server.uri)
+    steps, env = 30, server_env(MLFLOW_TRACKING_URI=server.uri)
     t0 = time.time()
     procs = [subprocess.Popen([sys.executable, "-c", _WORKER, str(i), str(steps), "four"], env=env, cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(4)]
@@ -212,7 +161,7 @@ def test_a_sweep_nests_under_its_parent_and_the_review_notebook_reads_it(server,
                                                 dst_path=str(tmp_path / "dl"))
     assert Path(table).read_text() == (tmp_path / "out" / "table.md").read_text()
     r = subprocess.run([sys.executable, str(REPO / "notebooks" / "review_runs.py")], cwd=tmp_path, timeout=300,
-                       env=_env(MLFLOW_TRACKING_URI=server.uri, PARTY_EXPERIMENT="sweep", MPLBACKEND="Agg"),
+                       env=server_env(MLFLOW_TRACKING_URI=server.uri, PARTY_EXPERIMENT="sweep", MPLBACKEND="Agg"),
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-3000:]
     assert f"parent {pid}: 3 child run(s)" in r.stdout and "sweep g: 3 point(s)" in r.stdout, r.stdout[-3000:]
@@ -255,7 +204,7 @@ def test_a_killed_jobs_run_is_closed_by_the_next_start_on_its_host(server, tmp_p
     opens a store, ``relocate_store``) does nothing for a server, without an error."""
     import mlflow
 
-    p = subprocess.run([sys.executable, "-c", _HOLDER], env=_env(MLFLOW_TRACKING_URI=server.uri), cwd=tmp_path,
+    p = subprocess.run([sys.executable, "-c", _HOLDER], env=server_env(MLFLOW_TRACKING_URI=server.uri), cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
     dead = p.stdout.split()[0]
@@ -272,32 +221,16 @@ def test_a_killed_jobs_run_is_closed_by_the_next_start_on_its_host(server, tmp_p
 
 # -------------------------------------------------------------------------------- SLURM jobs
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A SLURM cluster that answers (``$SLURM_CONF``, else scripts/slurm_local.sh's), or a skip."""
-    if not os.environ.get("SLURM_CONF") and LOCAL_SLURM_CONF.exists():
-        os.environ["SLURM_CONF"] = str(LOCAL_SLURM_CONF)
-    if not (shutil.which("sinfo") and shutil.which("sbatch") and shutil.which("squeue")):
-        pytest.skip("no SLURM client commands (sinfo, sbatch, squeue): bash scripts/slurm_local.sh start")
-    try:
-        r = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=10)
-    except subprocess.TimeoutExpired:
-        pytest.skip("sinfo did not answer in 10 s: no SLURM controller (bash scripts/slurm_local.sh start)")
-    if r.returncode != 0 or not r.stdout.strip():
-        pytest.skip(f"no SLURM cluster answers ({(r.stderr or r.stdout).strip()[:200]}): "
-                    "bash scripts/slurm_local.sh start")
-
-
 @pytest.mark.slow
-def test_four_slurm_jobs_log_to_one_server(cluster, tmp_path):
+def test_four_slurm_jobs_log_to_one_server(slurm_cluster, tmp_path):
     """The four workers as four ``sbatch --wrap`` jobs, each logging through ``$MLFLOW_TRACKING_URI``
     to a server bound to every interface (jobs on other nodes reach it by this node's name; the
     worker's code travels in the command, so only the venv and the project need to be shared)."""
-    srv = _start(tmp_path / "srv", host="0.0.0.0")
+    srv = start_mlflow_server(tmp_path / "srv", host="0.0.0.0")
     try:
         assert srv.uri.startswith("http://") and "0.0.0.0" not in srv.uri
         steps, code = 30, base64.b64encode(_WORKER.encode()).decode()
-        env = _env(MLFLOW_TRACKING_URI=srv.uri)
+        env = server_env(MLFLOW_TRACKING_URI=srv.uri)
         jobs = []
         for i in range(4):
             cmd = f"{sys.executable} -c \"import base64; exec(base64.b64decode('{code}'))\" {i} {steps} slurm"
@@ -328,4 +261,4 @@ def test_four_slurm_jobs_log_to_one_server(cluster, tmp_path):
             raise AssertionError(f"{e}\njob logs:\n{logs}") from e
         print(f"4 SLURM jobs ({', '.join(jobs)}) x {steps} steps to {srv.uri}: {took:.1f} s from submission")
     finally:
-        _stop(srv)
+        stop_mlflow_server(srv)

@@ -1,7 +1,8 @@
 """How a stage's process ends, beside the stage skeleton (``party.stage``): SIGTERM turned into
 ``Terminated`` so the run ends KILLED with the error recorded, the runs a dead process left
 RUNNING marked KILLED when the store is next opened (``close_orphans``, keyed by ``process_key``),
-and the worker processes of a pool ending with the process that started them (``die_with_parent``)."""
+the worker processes of a pool ending with the process that started them (``die_with_parent``),
+and a SLURM job preempted by its scheduler's warning signal (``Preempted``, ``requeue_at_exit``)."""
 from __future__ import annotations
 
 import contextlib
@@ -143,3 +144,63 @@ def terminate_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+class Preempted(BaseException):
+    """Raised by a training that received SLURM's warning signal (``party.training``'s
+    ``RequeueOnSignal``), once its rolling checkpoint is saved: the stage ends its MLflow run KILLED
+    with tag ``party.preempted`` = the job, and the job is requeued (``requeue_at_exit``). Like
+    ``KeyboardInterrupt``, not an ``Exception``: a grid's ``except Exception`` (a failed point, the grid
+    goes on) must not catch it; it is not a ``KeyboardInterrupt`` either, which Lightning turns into
+    ``SystemExit``."""
+
+    def __init__(self, job_id: str | None, step: int, checkpoint: str | os.PathLike):
+        super().__init__(f"SLURM job {job_id}: preempted at step {step}; the rolling checkpoint {checkpoint} "
+                         "is saved and the requeued job resumes from it")
+        self.job_id, self.step, self.checkpoint = job_id, int(step), Path(checkpoint)
+
+
+_REQUEUE: list[str] = []        # jobs to requeue when this process exits
+_REQUEUE_REGISTERED = False
+
+
+def requeue_at_exit(job_id: str | None) -> None:
+    """Requeue SLURM job ``job_id`` when this process exits (``requeue_pending``, from ``atexit``),
+    after the stage has ended its MLflow run: the requeue makes SLURM send SIGTERM to every process
+    of the job, which must then find nothing left to close."""
+    import atexit
+
+    global _REQUEUE_REGISTERED
+    if not job_id:
+        log.error("preempted, but not in a SLURM job: nothing to requeue; rerun the stage (it resumes)")
+        return
+    _REQUEUE.append(str(job_id))
+    if not _REQUEUE_REGISTERED:
+        atexit.register(requeue_pending)
+        _REQUEUE_REGISTERED = True
+
+
+def requeue_pending() -> list[str]:
+    """Requeue the jobs ``requeue_at_exit`` noted (``party.slurm.requeue``), ignoring the SIGTERM that
+    follows (the process is ending; SLURM's SIGKILL comes ``KillWait`` later). A failure is logged
+    (the job then just ends; rerunning the stage resumes from the checkpoint). Returns the jobs
+    requeued."""
+    import signal
+    import threading
+
+    from party import slurm
+
+    done = []
+    while _REQUEUE:
+        job = _REQUEUE.pop(0)
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            slurm.requeue(job)
+        except (slurm.SlurmError, OSError) as e:
+            log.error("could not requeue SLURM job %s (%s); submit the stage again: it resumes from its "
+                      "rolling checkpoint", job, e)
+            continue
+        log.warning("requeued SLURM job %s: it resumes from its rolling checkpoint", job)
+        done.append(job)
+    return done

@@ -818,6 +818,12 @@ class Repro:                                 # `party repro -j N`
 
 
 @dataclass
+class Preemption:
+    requeue: bool = MISSING                  # party.training.RequeueOnSignal (SLURM jobs)
+    signal: str = _choice("USR1", "USR2")
+
+
+@dataclass
 class Config:
     seed: int = MISSING
     progress: bool = MISSING
@@ -833,6 +839,7 @@ class Config:
     eval: Eval = _group(Eval)
     generator: Generator = _group(Generator)
     repro: Repro = _group(Repro)
+    preemption: Preemption = _group(Preemption)
 
 
 #: the config groups of conf/ and their schema

@@ -24,6 +24,13 @@ never reused as the shorter run. That run starts from the furthest checkpoint at
 budget (a shorter budget's ``steps-<N>/last.ckpt``, kept beside), else from scratch, and
 checkpoints to ``steps-<max_steps>/last.ckpt``, so the longer run's ``last.ckpt`` is kept. The
 export records the steps trained (``steps_trained``).
+
+Preemption (SLURM): in a SLURM job (``$SLURM_JOB_ID``) ``build_trainer`` turns Lightning's own
+auto-requeue off and adds ``RequeueOnSignal``: the scheduler's warning signal
+(``preemption.signal``, ``--signal=USR1@<s>`` or ``scancel --signal=USR1``) saves the rolling
+checkpoint at the next step and raises ``party.lifecycle.Preempted`` (the run ends KILLED, tag
+``party.preempted``); rank zero requeues the job when its process exits, after the run is closed.
+The requeued job resumes from that checkpoint like any rerun (docs/scaling.md).
 """
 from __future__ import annotations
 
@@ -144,12 +151,19 @@ def build_trainer(cfg, *, max_steps: int, logger=False, callbacks: Iterable = ()
 
     ``kw``: stage-specific Trainer arguments (validation cadence, gradient clipping,
     ``default_root_dir``, ...). Lightning's own checkpointing and model summary are off:
-    stages checkpoint with ``AtomicCheckpoint`` and export their outputs themselves."""
+    stages checkpoint with ``AtomicCheckpoint`` and export their outputs themselves. In a SLURM
+    job, Lightning's auto-requeue is off and ``RequeueOnSignal`` handles ``preemption.signal``
+    (``preemption.requeue``; see the module docstring)."""
     import lightning as L
 
     callbacks = list(callbacks)
     if cfg.progress and int(max_steps) > 0:
         callbacks.append(_step_progress_bar_cls()())
+    if in_slurm_job():
+        kw = {**kw, "plugins": _slurm_plugins(kw.get("plugins"))}
+        # last: it acts after the rolling checkpoint's own batch-end save
+        callbacks.append(__getattr__("RequeueOnSignal")(str(cfg.preemption.signal),
+                                                        bool(cfg.preemption.requeue)))
     args = dict(max_steps=int(max_steps), logger=logger or False, callbacks=callbacks,
                 enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
                 enable_progress_bar=bool(cfg.progress), **trainer_kwargs(cfg, section))
@@ -194,6 +208,7 @@ def _atomic_checkpoint_cls():
 
         def __init__(self, path: Path, every: int):
             self.path, self.every = Path(path), int(every)
+            self.saved_step: int | None = None      # the global step of the last save
 
         def _save(self, trainer) -> None:
             from party.io import replace_durably, temp_beside
@@ -207,6 +222,7 @@ def _atomic_checkpoint_cls():
             finally:
                 if trainer.is_global_zero and os.path.lexists(tmp):
                     tmp.unlink()
+            self.saved_step = int(trainer.global_step)
 
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
             if self.every > 0 and trainer.global_step % self.every == 0:
@@ -219,14 +235,162 @@ def _atomic_checkpoint_cls():
     return AtomicCheckpoint
 
 
+# --------------------------------------------------------------------------- preemption (SLURM)
+
+def in_slurm_job() -> bool:
+    """Whether this process runs in a SLURM job (``$SLURM_JOB_ID``)."""
+    return bool(os.environ.get("SLURM_JOB_ID"))
+
+
+def _slurm_plugins(plugins) -> list:
+    """``plugins`` plus Lightning's SLURM environment with its auto-requeue off (when Lightning
+    detects SLURM and none is given): ``RequeueOnSignal`` alone acts on the warning signal."""
+    from lightning.pytorch.plugins.environments import SLURMEnvironment
+
+    plugins = list(plugins or []) if isinstance(plugins, (list, tuple)) or plugins is None else [plugins]
+    if SLURMEnvironment.detect() and not any(isinstance(p, SLURMEnvironment) for p in plugins):
+        plugins.append(SLURMEnvironment(auto_requeue=False))
+    return plugins
+
+
+def signal_number(name: str) -> int:
+    """``USR1`` / ``SIGUSR1`` -> its number; ValueError naming ``preemption.signal`` otherwise."""
+    import signal
+    sig = str(name).upper()
+    sig = sig if sig.startswith("SIG") else f"SIG{sig}"
+    try:
+        return int(signal.Signals[sig])
+    except KeyError:
+        raise ValueError(f"preemption.signal: {name!r} is not a signal name (USR1, USR2)") from None
+
+
+#: warning signals received and not acted on yet (``_note_signal``; a list: appending is all a handler does)
+_RECEIVED: list[int] = []
+
+
+def _note_signal(signum, frame) -> None:
+    _RECEIVED.append(signum)
+
+
+def _wait_for_requeue(job: str, poll_s: float = 2.0) -> None:
+    """Block (a DDP rank other than zero) while SLURM lists ``job`` as RUNNING: rank zero requeues it
+    once it has closed its MLflow run, and SLURM then ends every rank. Exiting earlier would end
+    the step (``srun --kill-on-bad-exit``) and kill rank zero before its run is closed. The SIGTERM
+    of the requeue ends this process at once (its default: this rank has nothing to close;
+    Lightning's handler would wait on a collective of rank zero, which is gone)."""
+    import signal
+    import time
+
+    from party import slurm
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    while True:
+        try:
+            if slurm.job_states([job]).get(str(job), "RUNNING") != "RUNNING":
+                return
+        except slurm.SlurmError as e:       # squeue unreachable: the requeue's SIGTERM still ends this rank
+            log.warning("waiting for rank zero to requeue job %s: %s", job, e)
+        time.sleep(poll_s)
+
+
+def _requeue_on_signal_cls():
+    import signal
+    import threading
+
+    from lightning.pytorch.callbacks import Callback
+
+    class RequeueOnSignal(Callback):
+        """SLURM's warning before the time limit (``signame``) ends the training at the next step:
+        the rolling checkpoint (the ``AtomicCheckpoint`` among the trainer's callbacks) is saved
+        there, and ``Preempted`` is raised, so the stage ends its MLflow run KILLED (tag
+        ``party.preempted`` = the job); rank zero requeues the job as its process exits
+        (``party.lifecycle.requeue_at_exit``), and the requeued job resumes from that checkpoint.
+
+        The handler (installed when ``fit`` sets up, main thread) only records the signal; the
+        decision is taken at a batch end, after the rolling checkpoint's own save, and under DDP
+        agreed by all ranks (any rank that received it). Without a rolling checkpoint, or with
+        ``requeue=False`` (``preemption.requeue``), the signal is logged and ignored: the
+        training goes on until SLURM ends the job (SIGTERM: the run ends KILLED). The handler stays
+        after ``fit`` (a warning during the export is noted, not fatal: a signal's default would end
+        the process)."""
+
+        def __init__(self, signame: str, requeue: bool):
+            self.signame, self.signum, self.requeue = str(signame), signal_number(signame), bool(requeue)
+
+        def setup(self, trainer, pl_module, stage: str) -> None:
+            if stage != "fit":
+                return
+            if threading.current_thread() is not threading.main_thread():
+                log.warning("not in the main thread: SIG%s (SLURM's warning) is not handled", self.signame)
+                return
+            if signal.getsignal(self.signum) is not _note_signal:
+                signal.signal(self.signum, _note_signal)
+            if trainer.is_global_zero:
+                log.info("SLURM job %s: SIG%s %s", current_job(), self.signame,
+                         "saves the rolling checkpoint and requeues the job" if self.requeue
+                         else "is ignored (preemption.requeue=false)")
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+            got = bool(_RECEIVED)
+            if trainer.world_size > 1:
+                got = bool(trainer.strategy.reduce_boolean_decision(got, all=False))
+            if got:
+                _RECEIVED.clear()
+                self._preempt(trainer)
+
+        def teardown(self, trainer, pl_module, stage: str) -> None:
+            if stage == "fit" and _RECEIVED and trainer.is_global_zero:
+                log.warning("SIG%s arrived after the training loop: not requeued; the stage goes on (SLURM "
+                            "ends the job at its time limit)", self.signame)
+            _RECEIVED.clear()
+
+        def _preempt(self, trainer) -> None:
+            from party.lifecycle import Preempted, requeue_at_exit
+            job, step = current_job(), int(trainer.global_step)
+            ckpt = next((c for c in trainer.callbacks if isinstance(c, _atomic_checkpoint())), None)
+            if not self.requeue or ckpt is None:
+                if trainer.is_global_zero:
+                    log.warning("SLURM job %s: SIG%s at step %d; not requeued (%s): training goes on until "
+                                "SLURM ends the job", job, self.signame, step,
+                                "preemption.requeue=false" if not self.requeue
+                                else "this training keeps no rolling checkpoint to resume from")
+                return
+            if ckpt.saved_step != step:
+                ckpt._save(trainer)
+            trainer.strategy.barrier("party.preempted")        # the checkpoint is in place on every rank
+            if trainer.is_global_zero:
+                log.warning("SLURM job %s: SIG%s at step %d: saved %s; ending the run, then requeueing the "
+                            "job", job, self.signame, step, ckpt.path)
+                requeue_at_exit(job)
+            else:
+                _wait_for_requeue(job)
+            raise Preempted(job, step, ckpt.path)
+
+    RequeueOnSignal.__qualname__ = "RequeueOnSignal"
+    return RequeueOnSignal
+
+
+def current_job() -> str | None:
+    """This process's SLURM job (``party.slurm.current_job``)."""
+    from party.slurm import current_job as job
+    return job()
+
+
+def _atomic_checkpoint():
+    return __getattr__("AtomicCheckpoint")
+
+
 def __getattr__(name: str):
-    # ``AtomicCheckpoint`` is built on first use: importing lightning is slow and most
-    # users of this module (parameter counts, hashes) do not need it
-    if name == "AtomicCheckpoint":
-        cls = _atomic_checkpoint_cls()
-        globals()[name] = cls
-        return cls
+    # the callbacks (``AtomicCheckpoint``, ``RequeueOnSignal``) are built on first use: importing
+    # lightning is slow and most users of this module (parameter counts, hashes) do not need it
+    if name in _LAZY:
+        if name not in globals():
+            globals()[name] = _LAZY[name]()
+        return globals()[name]
     raise AttributeError(name)
+
+
+# classes built on first use (``__getattr__``)
+_LAZY = {"AtomicCheckpoint": _atomic_checkpoint_cls, "RequeueOnSignal": _requeue_on_signal_cls}
 
 
 # --------------------------------------------------------------------------- resume
@@ -405,8 +569,9 @@ class TrainingSession:
     Entering holds ``<root>/<name>/<key>/.lock`` (``hold_resume_dir``), finds the checkpoint to
     resume from and the one to write (``plan_resume``: with ``max_steps``, never a checkpoint
     trained past the budget; which one is logged), tags the run (``party.resume_key``,
-    ``party.resumed``, ``party.resume_step`` and ``tags``) and links a resumed run to its earlier
-    ones. ``export`` builds ``out_dir`` under a temp name (the rolling checkpoint as
+    ``party.resumed``, ``party.resume_step``, in a SLURM job ``party.slurm_job_id`` and
+    ``party.slurm_restarts``, and ``tags``) and links a resumed run to its earlier ones (a job
+    requeued after preemption continues this way). ``export`` builds ``out_dir`` under a temp name (the rolling checkpoint as
     ``last.ckpt`` and what ``write(tmp)`` writes), swaps it in whole and logs the files named to
     the run."""
 
@@ -442,9 +607,11 @@ class TrainingSession:
         self._hold.__enter__()
         try:
             self._plan()
+            slurm = ({"party.slurm_job_id": current_job(), "party.slurm_restarts":
+                      os.environ.get("SLURM_RESTART_COUNT", "0")} if in_slurm_job() else {})
             self.run.set_tags({**self.tags, "party.resume_key": self.key,
                                "party.resumed": str(self.resume_from is not None).lower(),
-                               "party.resume_step": str(self.resume_step)})
+                               "party.resume_step": str(self.resume_step), **slurm})
             if self.resume_from is not None:
                 tracking.link_resumed(self.run, self.key)
         except BaseException:

@@ -7,7 +7,7 @@ import os
 import subprocess
 from typing import Any, Iterator, Mapping
 
-from party.lifecycle import _SIGNALLED, close_orphans, process_key
+from party.lifecycle import _SIGNALLED, Preempted, close_orphans, process_key
 from party.tracking.log import NullRun, _config_yaml, _RunMethods, flatten_config, is_rank_zero
 from party.tracking.store import _ORPHANS_CLOSED, _experiment_id, _set_tracking_uri, _tcfg, resolve_uri
 
@@ -74,7 +74,8 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
     ``<name>@<dvc exp>``), ``mlflow.parentRunId`` for nested runs (an
     active run with ``nested=True``, or ``parent_run_id`` / ``tracking.parent_run_id``).
     Logs the flattened resolved config as params and the full config as ``config.yaml``.
-    The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM) when the body raises.
+    The run ends FINISHED, or FAILED (KILLED on Ctrl-C or SIGTERM, and when SLURM preempted it:
+    ``Preempted``, tagged ``party.preempted``) when the body raises.
     First marks KILLED the runs left RUNNING by a dead process of this host (``close_orphans``).
     """
     t = _tcfg(cfg)
@@ -129,12 +130,21 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
         run.log_text(_config_yaml(cfg), "config.yaml")
         yield run
     except BaseException as e:
-        killed = isinstance(e, KeyboardInterrupt) or bool(_SIGNALLED)
-        _SIGNALLED.clear()
-        mlflow.end_run("KILLED" if killed else "FAILED")
+        _end_after(e)
         raise
     else:
         mlflow.end_run("FINISHED")
+
+
+def _end_after(e: BaseException) -> None:
+    """End the active run whose body raised ``e``: KILLED on Ctrl-C, SIGTERM or SLURM's preemption
+    (tag ``party.preempted``), else FAILED."""
+    import mlflow
+    killed = isinstance(e, (KeyboardInterrupt, Preempted)) or bool(_SIGNALLED)
+    _SIGNALLED.clear()
+    if isinstance(e, Preempted):
+        mlflow.set_tag("party.preempted", str(e.job_id))
+    mlflow.end_run("KILLED" if killed else "FAILED")
 
 
 @contextlib.contextmanager
@@ -147,9 +157,7 @@ def _continue_run(cfg, run_id: str) -> Iterator[Any]:
     try:
         yield run
     except BaseException as e:
-        killed = isinstance(e, KeyboardInterrupt) or bool(_SIGNALLED)
-        _SIGNALLED.clear()
-        mlflow.end_run("KILLED" if killed else "FAILED")
+        _end_after(e)
         raise
     else:
         mlflow.end_run("FINISHED")
