@@ -125,26 +125,27 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
                            parent_run_id=parent, nested=nested or active is not None and bool(parent),
                            log_system_metrics=bool(t["log_system_metrics"]))
     run = _party_run_cls()(run)
-    try:
+    with _ending():
         run.log_params(flatten_config(cfg))
         run.log_text(_config_yaml(cfg), "config.yaml")
         yield run
-    except BaseException as e:
-        _end_after(e)
-        raise
-    else:
-        mlflow.end_run("FINISHED")
 
 
-def _end_after(e: BaseException) -> None:
-    """End the active run whose body raised ``e``: KILLED on Ctrl-C, SIGTERM or SLURM's preemption
-    (tag ``party.preempted``), else FAILED."""
+@contextlib.contextmanager
+def _ending() -> Iterator[None]:
+    """End the active run when the body ends: FINISHED, or when it raises KILLED on Ctrl-C, SIGTERM
+    or SLURM's preemption (tag ``party.preempted``), else FAILED."""
     import mlflow
-    killed = isinstance(e, (KeyboardInterrupt, Preempted)) or bool(_SIGNALLED)
-    _SIGNALLED.clear()
-    if isinstance(e, Preempted):
-        mlflow.set_tag("party.preempted", str(e.job_id))
-    mlflow.end_run("KILLED" if killed else "FAILED")
+    try:
+        yield
+    except BaseException as e:
+        killed = isinstance(e, (KeyboardInterrupt, Preempted)) or bool(_SIGNALLED)
+        _SIGNALLED.clear()
+        if isinstance(e, Preempted):
+            mlflow.set_tag("party.preempted", str(e.job_id))
+        mlflow.end_run("KILLED" if killed else "FAILED")
+        raise
+    mlflow.end_run("FINISHED")
 
 
 @contextlib.contextmanager
@@ -153,14 +154,8 @@ def _continue_run(cfg, run_id: str) -> Iterator[Any]:
     import mlflow
     _set_tracking_uri(mlflow, resolve_uri(cfg))
     mlflow.start_run(run_id=run_id)
-    run = _party_run_cls()(mlflow.active_run())
-    try:
-        yield run
-    except BaseException as e:
-        _end_after(e)
-        raise
-    else:
-        mlflow.end_run("FINISHED")
+    with _ending():
+        yield _party_run_cls()(mlflow.active_run())
 
 
 def create_run(cfg, stage: str, run_name: str, tags: Mapping[str, Any] = ()) -> str | None:
