@@ -78,6 +78,7 @@ class _Trainer:
 
     is_global_zero = True
     strategy = _Strategy()
+    global_step = 0
 
     def save_checkpoint(self, filepath, weights_only=False):
         with open(filepath, "wb") as f:         # as Lightning does: by name
