@@ -695,11 +695,15 @@ class GenModel:
     ptg_k: int = _COUNT()
     ptg_hidden: int = _COUNT()
     pg_window: int = _COUNT()
+    pg_lookahead: int = _range(0)
+    pg_align: str = _choice("overlap", "generated")
     pg_hidden: int = _COUNT()
     hpf_heads: int = _COUNT()
     hpf_head_dim: int = _COUNT()
     text_norm: str = _choice("none", "standardize")
     cond_drop: float = _range(0, 1, below=True)
+    null_condition: str = _choice("whole_body", "text")
+    part_embed: str = _choice("shared", "detached", "separate")
     ptg_init: str = _choice("he", "normal")
 
 
@@ -715,6 +719,7 @@ class GenLoss:
 class GenCorruption:
     enabled: bool = MISSING
     prob: float = _PROB()
+    part_context_prob: float = _PROB()
 
 
 @dataclass

@@ -8,7 +8,8 @@ WINDOWS = {"holistic": 8, "arms": 12, "legs": 12}
 D_TEXT = 16
 MODEL = dict(dim=32, part_layers=2, holistic_layers=2, heads=4, mlp_ratio=2, dropout=0.0, max_tokens=20,
              ptg_k=3, ptg_hidden=24, pg_window=3, pg_hidden=16, hpf_heads=2, hpf_head_dim=8, text_norm="none", cond_drop=0.0,
-             ptg_init="he")
+             ptg_init="he", pg_lookahead=3, pg_align="generated", null_condition="text",
+             part_embed="shared")
 LOSS = dict(lambda_div=0.1, tau=0.05, lambda_aux=0.1)
 METHODS = {"party": dict(kind="party", pg=True, ptg=True, hpf=True, aux=True),
            "holistic": dict(kind="holistic", pg=False, ptg=False, hpf=False, aux=False),

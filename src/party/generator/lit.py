@@ -3,7 +3,8 @@
 L = L_hol + L_part + λ_div·L_div + λ_aux·L_aux (the model computes every term under the
 same masks and cycle schedule generation uses); AdamW with the paper's betas, lr until
 ``optim.milestone`` iterations then ``optim.lr_after``. Optional T2M-GPT token corruption
-replaces a random fraction of the teacher-forcing *inputs* (never the targets).
+replaces a random fraction of the teacher-forcing *inputs* (never the targets), and
+``corruption.part_context_prob`` of the part tokens the holistic stream reads (``context_codes``).
 
 Logged per step: each loss term, next-token accuracy per stream and the PTG gate
 selection ratios per part (mean gate weight of each of the K embeddings, paper Fig. 6);
@@ -32,11 +33,17 @@ class GeneratorLit(L.LightningModule):
         self._val: list[dict[str, float]] = []
 
     def _inputs(self, batch: dict) -> dict:
-        if not self.corruption["enabled"]:
-            return batch
-        noisy = {s: corrupt_codes(c, batch["lengths"][s], self.codebook_sizes[s], float(self.corruption["prob"]),
-                                  self._gen) for s, c in batch["codes"].items()}
-        return {**batch, "input_codes": noisy}
+        out = batch
+        if self.corruption["enabled"]:
+            noisy = {s: corrupt_codes(c, batch["lengths"][s], self.codebook_sizes[s], float(self.corruption["prob"]),
+                                      self._gen) for s, c in batch["codes"].items()}
+            out = {**out, "input_codes": noisy}
+        ctx = float(self.corruption.get("part_context_prob", 0.0))
+        parts = [s for s in batch["codes"] if s != next(iter(batch["codes"]))]
+        if ctx > 0 and parts:                # the part tokens the holistic stream reads (PG / HPF)
+            out = {**out, "context_codes": {p: corrupt_codes(batch["codes"][p], batch["lengths"][p],
+                                                            self.codebook_sizes[p], ctx, self._gen) for p in parts}}
+        return out
 
     @staticmethod
     def _scalars(out: dict) -> dict[str, float]:

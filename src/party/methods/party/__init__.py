@@ -83,6 +83,13 @@ class PartyFamily(MethodFamily):
         spec = dict(obj["spec"])
         spec.setdefault("cond_drop", 0.0)    # models saved before the key existed never saw the null condition
         spec.setdefault("ptg_init", "normal")  # ... and were built with N(0, 0.02) PTG MLPs (only matters at build)
+        # ... and before Part Guidance's alignment, null condition and part embeddings were switches:
+        # they ran the schedule T tokens ahead with PG over the tokens generated in the cycle, a null
+        # condition of the text alone, and the part transformers' own token tables
+        spec.setdefault("pg_lookahead", int(spec.get("pg_window", 3)))
+        spec.setdefault("pg_align", "generated")
+        spec.setdefault("null_condition", "text")
+        spec.setdefault("part_embed", "shared")
         model = PartyGenerator(GeneratorSpec(**spec))
         model.load_state_dict(obj["state_dict"])
         return cls.wrap(model.eval(), obj["meta"])
