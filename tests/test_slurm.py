@@ -137,7 +137,7 @@ def test_submit_dry_run_writes_an_array_and_a_table_job(tmp_path, monkeypatch):
     one = slurm.submit("train_vqvae", ["vqvae.train.max_steps=3"], "slurm_local", dry_run=True)["scripts"]
     assert list(one) == ["party-train_vqvae"] and "party.cli train_vqvae vqvae.train.max_steps=3" in one[
         "party-train_vqvae"]
-    assert main(["submit", "nope"]) == 2
+    assert main(["submit", "nope"]) == 2 and main(["submit", "--wait"]) == 2
 
 
 # --------------------------------------------------------------------------- the local cluster

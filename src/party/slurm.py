@@ -315,6 +315,9 @@ def main(argv: Sequence[str]) -> int:
             flags.append(a)
         else:
             rest.append(a)
+    if not rest:
+        print(f"party submit: no stage given\n\n{USAGE}", file=sys.stderr)
+        return 2
     stage, overrides = rest[0], rest[1:]
     from party.cli import available_stages
     if stage not in available_stages():

@@ -290,8 +290,8 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
     tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
     me = {"host": socket.gethostname(), "pid": os.getpid()}
     from party.slurm import current_job
-    if current_job():
-        me["slurm_job"] = current_job()
+    if (job := current_job()) is not None:
+        me["slurm_job"] = job
     began = time.time()
     now = lambda: time.strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
     tried: set[str] = set()

@@ -44,6 +44,8 @@ from typing import Any, Iterable, Mapping
 
 import torch
 
+from party.slurm import current_job
+
 log = logging.getLogger(__name__)
 
 # trainer.* keys passed to lightning.Trainer
@@ -346,7 +348,7 @@ def _requeue_on_signal_cls():
         def _preempt(self, trainer) -> None:
             from party.lifecycle import Preempted, requeue_at_exit
             job, step = current_job(), int(trainer.global_step)
-            ckpt = next((c for c in trainer.callbacks if isinstance(c, _atomic_checkpoint())), None)
+            ckpt = next((c for c in trainer.callbacks if isinstance(c, __getattr__("AtomicCheckpoint"))), None)
             if not self.requeue or ckpt is None:
                 if trainer.is_global_zero:
                     log.warning("SLURM job %s: SIG%s at step %d; not requeued (%s): training goes on until "
@@ -367,16 +369,6 @@ def _requeue_on_signal_cls():
 
     RequeueOnSignal.__qualname__ = "RequeueOnSignal"
     return RequeueOnSignal
-
-
-def current_job() -> str | None:
-    """This process's SLURM job (``party.slurm.current_job``)."""
-    from party.slurm import current_job as job
-    return job()
-
-
-def _atomic_checkpoint():
-    return __getattr__("AtomicCheckpoint")
 
 
 def __getattr__(name: str):

@@ -520,10 +520,9 @@ class _Generation:
             m.hpf.add_parts(self.hpf_cache, m._hpf_parts(self._part_rows({p: self.tok[p][:, k0:] for p in m.parts}),
                                                          k0), k0)
         if m.pg is not None and self.use_cache:
-            parts = self._part_rows({p: self.tok[p] for p in m.parts})
-            T = m.spec.pg_window
-            member = m._membership(i * T + 1, next(iter(parts.values())).shape[1], self.c.device)[-1]
-            self.guidance = (member.to(self.c.dtype)[None, :, None] * m._fuse(parts)).sum(1, keepdim=True)
+            T, n_p = m.spec.pg_window, self.tok[m.parts[0]].shape[1]
+            cols = m._membership(i * T + 1, n_p, self.c.device)[-1].nonzero().flatten()   # cycle i's row
+            self.guidance = m._fuse(self._part_rows({p: self.tok[p][:, cols] for p in m.parts})).sum(1, keepdim=True)
 
     def run(self) -> dict[str, list[torch.Tensor]]:
         m, kind = self.m, self.m.spec.kind
