@@ -4,7 +4,7 @@ other with every core: what `party repro -j 2` gains on a small CPU machine. Mea
     python bench/bench_parallel_stages.py [--stage train_vqvae] [--steps 200]
 
 Runs the real stage twice (``train_vqvae`` on the holistic and arms streams, or
-``train_generator`` for holistic and partwise) with ``max_steps`` = --steps, tracking off, outputs
+``train_generator`` for holistic and party_parts_only) with ``max_steps`` = --steps, tracking off, outputs
 in a temp folder, on the project's ``params.yaml`` and data (``dvc repro prepare`` first; for
 ``train_generator`` also ``extract_tokens`` and ``embed_texts``). Baseline: the two runs in
 sequence with torch's default threads (every core); then: both at once with
@@ -39,7 +39,7 @@ def commands(stage: str, steps: int, out: Path) -> list[list[str]]:
                  f"generator.train.ckpt_every={steps}", "generator.train.resume=false",
                  "generator.train.render_samples=0", f"generator.out_dir={out / m}",
                  f"generator.resume_dir={out / 'ckpt' / m}", *common]
-                for m in ("holistic", "partwise")]
+                for m in ("holistic", "party_parts_only")]
     raise SystemExit(f"--stage: train_vqvae or train_generator, not {stage!r}")
 
 

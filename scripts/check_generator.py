@@ -1,6 +1,6 @@
 """Does a trained generator do what a prompt names on the named side? (synthetic dataset)
 
-    .venv/bin/python scripts/check_generator.py [--methods party holistic partwise] [--samples 20]
+    .venv/bin/python scripts/check_generator.py [--methods party holistic parco party_parts_only] [--samples 20]
                                                 [--frames 120] [--out data/eval/side_checks.json]
                                                 [--sampling sample|greedy] [--cond-scale S]
                                                 [--part-streams]
@@ -51,7 +51,7 @@ def _pct(x) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
-    ap.add_argument("--methods", nargs="*", default=["party", "holistic", "partwise"])
+    ap.add_argument("--methods", nargs="*", default=["party", "holistic", "parco", "party_parts_only"])
     ap.add_argument("--samples", type=int, default=20)
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--out", default=None)

@@ -4,8 +4,10 @@
                                                  [--out data/tokenizers/side_checks.json]
 
 For every stream's tokenizer: tokenize and decode the whole single-segment clips whose
-arms wave with one named hand (holistic, arms) or whose legs kick with one named foot
-(holistic, legs); a part stream's reconstruction is put back into the ground-truth body.
+arms wave with one named hand (holistic, arms, left_arm, right_arm) or whose legs kick with one
+named foot (holistic, legs, left_leg, right_leg); a part stream's reconstruction is put back into
+the ground-truth body. ``parts``: the body composed from the tokenizers of every part alone
+(``dataset.parts.part_tokenizers``, the ParCo-like method's), as its generations are.
 Prints, per split, how many reconstructions keep the named side (``party.data.synthetic
 .checks``: wrist over shoulder in >= 20 points more frames than the other wrist; ankle
 10 cm over the other more often than the reverse) next to the ground truth's count.
@@ -23,7 +25,24 @@ from party.data.synthetic.checks import kick_kept, load_specs, probe_clips, wave
 from party.motion.features import recover_from_ric
 from party.tokenizers import load_tokenizer
 
-CHECKS = {"holistic": ("wave", "kick"), "arms": ("wave",), "legs": ("kick",)}
+CHECKS = {"holistic": ("wave", "kick"), "arms": ("wave",), "legs": ("kick",), "left_arm": ("wave",),
+          "right_arm": ("wave",), "left_leg": ("kick",), "right_leg": ("kick",), "parts": ("wave", "kick")}
+COMPOSED = "parts"
+
+
+class Composed:
+    """The tokenizers of every part alone, their reconstructions merged into one body."""
+
+    def __init__(self, tok_dir: Path, names, layout):
+        self.toks = {p: load_tokenizer(tok_dir / p) for p in names}
+        self.layout = layout
+
+    def reconstruct_full(self, raw_full):
+        import torch
+        raw = torch.as_tensor(raw_full, dtype=torch.float32)
+        pieces = {p: t.detokenize(t.tokenize(raw[:, torch.as_tensor(self.layout.index(p))])) for p, t in self.toks.items()}
+        T = min(len(v) for v in pieces.values())
+        return raw[:T], self.layout.merge({p: v[:T] for p, v in pieces.items()})
 # criteria from vqvae.diagnostics.side_checks
 KEPT = {"wave": lambda c: lambda j, side: wave_kept(j, side, float(c.wave_margin)),
         "kick": lambda c: lambda j, side: kick_kept(j, side, float(c.kick_lift_m))}
@@ -45,11 +64,21 @@ def main() -> None:
     side_cfg = cfg.vqvae.diagnostics.side_checks
     results = {}
     for stream in a.streams:
-        path = tok_dir / stream
-        if not (path / "model.pt").exists():
-            print(f"{path}: no tokenizer, skipped")
-            continue
-        tok = load_tokenizer(path)
+        if stream == COMPOSED:
+            from party.motion.parts import PartLayout
+            names = list(cfg.dataset.parts.get("part_tokenizers", []))
+            missing = [p for p in names if not (tok_dir / p / "model.pt").exists()]
+            if not names or missing:
+                print(f"{tok_dir}: no part tokenizers {missing or ''}, composed check skipped")
+                continue
+            layout = PartLayout.from_config(OmegaConf.to_container(cfg.dataset.parts), index.n_joints)
+            tok = Composed(tok_dir, names, layout)
+        else:
+            path = tok_dir / stream
+            if not (path / "model.pt").exists():
+                print(f"{path}: no tokenizer, skipped")
+                continue
+            tok = load_tokenizer(path)
         for split in a.splits:
             for kind in CHECKS[stream]:
                 kept_fn = KEPT[kind](side_cfg)

@@ -53,7 +53,8 @@ def test_cli_help_and_unknown_stage():
 
 
 def test_dvc_stages_follow_the_configured_streams():
-    """dvc.yaml's `foreach: ${dataset.parts.streams}` expands to one stage per stream of params.yaml."""
+    """dvc.yaml's `foreach: ${dataset.parts.streams}` expands to one stage per stream of params.yaml, and
+    `foreach: ${vqvae.part_streams}` to one per part tokenizer."""
     import yaml
     streams = yaml.safe_load((ROOT / "params.yaml").read_text())["dataset"]["parts"]["streams"]
     out = subprocess.run([str(Path(sys.executable).parent / "dvc"), "stage", "list", "--name-only"], cwd=ROOT,
@@ -62,6 +63,8 @@ def test_dvc_stages_follow_the_configured_streams():
     names = out.stdout.split()
     for stage in ("train_vqvae", "train_evaluator"):
         assert [n.split("@")[1] for n in names if n.startswith(f"{stage}@")] == streams, names
+    parts = yaml.safe_load((ROOT / "params.yaml").read_text())["dataset"]["parts"]["part_tokenizers"]
+    assert [n.split("@")[1] for n in names if n.startswith("train_part_vqvae@")] == parts, names
 
 
 def test_stages_list_describes_each_and_help_does_not_start_hydra(capsys):

@@ -180,13 +180,14 @@ def store_record(store: str | Path) -> dict | None:
     return store_meta(store).get(KEY)
 
 
-def generator_inputs(cfg) -> dict:
+def generator_inputs(cfg, streams=None) -> dict:
     """What a token generator trained on ``cfg`` reads, recorded: the tokenizer (when present) and
-    token store of every ``generator.streams``, and the text-embedding store. Each store is first
-    checked against the tokenizer it was extracted with (``party extract_tokens`` rebuilds it)."""
+    token store of every stream of ``streams`` (None: ``generator.streams``), and the text-embedding
+    store. Each store is first checked against the tokenizer it was extracted with (``party
+    extract_tokens`` rebuilds it)."""
     g = cfg.generator
     out = {}
-    for s in g.streams:
+    for s in (g.streams if streams is None else streams):
         tok, store = Path(g.tokenizers_dir) / s, Path(g.tokens_dir) / s
         out[f"tokens/{s}"] = entry("tokens", store)
         if (tok / FILES["tokenizer"][0]).is_file():

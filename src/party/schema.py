@@ -140,6 +140,7 @@ class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
     streams: List[str] = MISSING            # generation streams, in order
     stream_parts: Dict[str, List[str]] = MISSING   # stream -> its parts (holistic: none)
     coherence: Dict[str, List[int]] = MISSING
+    part_tokenizers: List[str] = MISSING    # each body part alone, root first (ParCo-like methods' streams)
     torso: List[int] = MISSING
 
 
@@ -469,6 +470,7 @@ TokenizerOverride = _override_of(VQModel, "TokenizerOverride",
 class Vqvae:
     stream: str = MISSING
     streams: List[str] = MISSING
+    part_streams: List[str] = MISSING
     out_dir: str = MISSING
     tokens_dir: str = MISSING
     resume_dir: str = MISSING
@@ -1069,8 +1071,8 @@ def validate(cfg, where: str = "config", *, partial: bool = False) -> DictConfig
 NAME_KEYS: tuple[tuple[str, str], ...] = (
     ("dataset.parts.streams", "items"), ("dataset.parts.parts", "keys"),
     ("dataset.parts.stream_parts", "keys"), ("dataset.parts.stream_parts", "value items"),
-    ("dataset.parts.coherence", "keys"),
-    ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.tokenizers", "keys"),
+    ("dataset.parts.coherence", "keys"), ("dataset.parts.part_tokenizers", "items"),
+    ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"), ("vqvae.tokenizers", "keys"),
     ("evaluator.stream", "value"), ("evaluator.streams", "items"),
     ("eval.sources.tokenizers", "items"),
     ("generator.method", "value"), ("generator.methods", "keys"), ("generator.streams", "items"),

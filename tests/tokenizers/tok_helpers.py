@@ -110,6 +110,8 @@ def tiny_cfg(tmp: Path, prepared: Path, **over):
              "vqvae.tokenizers.legs.window": 6,
              "vqvae.train.max_steps": 4, "vqvae.train.batch_size": 4, "vqvae.train.crop": 24,
              "vqvae.train.val_every": 2, "vqvae.train.ckpt_every": 2,
-             "vqvae.train.render_samples": 0, "vqvae.train.threads": 1, **over}
+             "vqvae.train.render_samples": 0, "vqvae.train.threads": 1,
+             "vqvae.part_streams": "[]",     # the three streams' tokenizers (part tokenizers: test_pipeline)
+             **over}
     cfg.merge_with(OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
     return cfg

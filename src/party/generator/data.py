@@ -292,9 +292,9 @@ def open_token_stores(tokens_dir: str | Path, streams: Sequence[str]) -> dict[st
     return {str(s): TokenStore.open(Path(tokens_dir) / str(s)) for s in streams}
 
 
-def build_generator_data(cfg, split: str) -> GeneratorDataset:
+def build_generator_data(cfg, split: str, streams: Sequence[str] | None = None) -> GeneratorDataset:
     """``GeneratorDataset`` of ``split`` wired from the config: ``paths.prepared`` (index),
-    ``generator.tokens_dir`` / ``generator.streams`` (token stores), ``text.embeddings_dir``
+    ``generator.tokens_dir`` / ``streams`` (token stores; None: ``generator.streams``), ``text.embeddings_dir``
     (current encoder), ``text.part_texts_path`` / ``part_texts.parts``,
     ``generator.loss.no_movement_text`` and ``generator.model.max_tokens``."""
     from party.data.context import load_context
@@ -302,7 +302,7 @@ def build_generator_data(cfg, split: str) -> GeneratorDataset:
 
     g = cfg.generator
     parts = [str(p) for p in cfg.part_texts.parts]
-    return GeneratorDataset(load_context(cfg), open_token_stores(g.tokens_dir, g.streams),
+    return GeneratorDataset(load_context(cfg), open_token_stores(g.tokens_dir, g.streams if streams is None else streams),
                             EmbeddingStore.open(cfg.text.embeddings_dir),
                             load_part_texts(cfg.text.part_texts_path, parts), split, parts,
                             str(g.loss.no_movement_text), int(g.model.max_tokens))

@@ -123,3 +123,36 @@ class Transformer(nn.Module):
         for i, block in enumerate(self.blocks):
             x = block(x, mask, is_causal, cache, i)
         return self.ln_f(x)
+
+
+TEXT_NORMS = ("none", "standardize")
+
+
+class TextNorm:
+    """Mixin of a generator ``nn.Module`` whose ``spec`` has ``text_norm`` (``TEXT_NORMS``) and
+    ``text_dim``: the frozen text embeddings as the model sees them. ``init_text_norm()`` (in
+    ``__init__``) registers the buffers ``text_mean`` / ``text_std``, stored with the weights."""
+
+    def init_text_norm(self) -> None:
+        if self.spec.text_norm not in TEXT_NORMS:
+            raise ValueError(f"generator.model.text_norm must be one of {TEXT_NORMS}, got {self.spec.text_norm!r}")
+        self.register_buffer("text_mean", torch.zeros(self.spec.text_dim))
+        self.register_buffer("text_std", torch.ones(self.spec.text_dim))
+
+    def set_text_stats(self, caption_emb: torch.Tensor) -> None:
+        """Per-dimension mean / std of the training captions' embeddings (N, D_text), used by
+        ``text_norm = standardize`` (a no-op for ``none``)."""
+        if self.spec.text_norm == "none":
+            return
+        e = torch.as_tensor(caption_emb, dtype=torch.float32)
+        if e.ndim != 2 or e.shape[1] != self.spec.text_dim or len(e) < 2:
+            raise ValueError(f"set_text_stats: expected (N >= 2, {self.spec.text_dim}) caption embeddings, "
+                             f"got {tuple(e.shape)}")
+        self.text_mean.copy_(e.mean(0))
+        self.text_std.copy_(e.std(0).clamp_min(1e-6))
+
+    def norm_text(self, e: torch.Tensor) -> torch.Tensor:
+        """A frozen text embedding (caption or part text) as the model sees it (``text_norm``)."""
+        if self.spec.text_norm == "none":
+            return e
+        return (e - self.text_mean) / self.text_std

@@ -59,10 +59,10 @@ def _loader(ds, batch_size: int, shuffle: bool, workers: int, seed: int, bucket_
     return DataLoader(ds, batch_size=batch_size, shuffle=False, **common)
 
 
-def _identity(cfg) -> dict:
+def _identity(cfg, streams) -> dict:
     from party.data.index import load_index
     index = load_index(Path(cfg.paths.prepared))
-    tok = {s: file_sha(Path(cfg.generator.tokens_dir) / s / "codes.npy") for s in cfg.generator.streams}
+    tok = {s: file_sha(Path(cfg.generator.tokens_dir) / s / "codes.npy") for s in streams}
     emb = Path(cfg.text.embeddings_dir)
     embs = sorted(str(p.relative_to(emb)) for p in emb.rglob("embeddings.npy"))
     return {**data_identity(index.path, index.root), "tokens": tok,
@@ -103,8 +103,9 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
     t = g.train
     seed = cfg.seed
     start_training(seed, t.threads)
-    built_from = provenance.generator_inputs(cfg)         # each store checked against its tokenizer first
-    train_ds, val_ds = build_generator_data(cfg, "train"), build_generator_data(cfg, t.val_split)
+    streams = family.token_streams(cfg, method)           # the token stores it trains on
+    built_from = provenance.generator_inputs(cfg, streams)   # each store checked against its tokenizer first
+    train_ds, val_ds = build_generator_data(cfg, "train", streams), build_generator_data(cfg, t.val_split, streams)
     model = family.build_model(cfg, method, train_ds)
     val_loader = _loader(val_ds, t.batch_size, False, 0, seed)
     untrained = _evaluate(model, val_loader)              # the trivial baseline: these weights before training
@@ -116,7 +117,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
     precision = trainer_kwargs(cfg, g.trainer)["precision"]
     key = config_key({**family.key_config(cfg, method), "optim": plain(g.optim), "corruption": plain(g.corruption),
                       "train": train_cfg, "seed": seed, **precision_identity(precision)},
-                     _identity(cfg))
+                     _identity(cfg, streams))
     described = family.describe(cfg, method)          # e.g. ParTY's kind
     tags = {"party.method": method, "party.family": family.name, **{f"party.{k}": str(v) for k, v in described.items()}}
     with TrainingSession(run, g.resume_dir, method, key, t.resume, "generator.train.resume", tags,

@@ -25,7 +25,7 @@ if TYPE_CHECKING:                          # pragma: no cover
     from party.methods.base import MethodFamily
 
 #: the modules of the built-in families (imported on first look-up)
-BUILTIN = ("party.methods.party", "party.methods.random_codes")
+BUILTIN = ("party.methods.party", "party.methods.parco", "party.methods.random_codes")
 
 _FAMILIES: dict[str, type] = {}
 _loaded: set[str] = set()

@@ -6,7 +6,8 @@ A **family** (``MethodFamily`` subclass, registered with ``party.methods.registe
 - ``Config``: a dataclass, the schema of that entry (``Literal`` fields for enums; checked
   by ``party.schema.validate``);
 - ``consumes``: what its training reads besides captions (``"tokens"``: the token stores of
-  ``generator.streams``; ``"features"``: the prepared motion features; ``()``: nothing);
+  ``token_streams``, by default ``generator.streams``; ``"features"``: the prepared motion
+  features; ``()``: nothing);
 - ``train(cfg, method, out_dir, run, callbacks)``: train ``generator.methods.<method>`` and
   write ``out_dir`` whole (``method.json`` with ``party.methods.store.write_method_json``
   plus the family's own files); returns the metrics dict;
@@ -100,6 +101,11 @@ class MethodFamily:
     @classmethod
     def recognizes(cls, folder) -> bool:
         return False
+
+    @classmethod
+    def token_streams(cls, cfg, method: str) -> list[str]:
+        """The token stores a token method of this family trains on (default ``generator.streams``)."""
+        return [str(s) for s in cfg.generator.streams]
 
     @classmethod
     def describe(cls, cfg, method: str) -> dict:

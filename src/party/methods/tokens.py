@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from party.methods.base import TrainedMethod
+from party.methods.base import MethodFamily, TrainedMethod
 
 
 def decode_streams(streams: Sequence[str], whole: str) -> list[str]:
@@ -132,3 +132,46 @@ class TokenMethod(TrainedMethod):
 
     def param_counts(self) -> dict[str, int]:
         return self.model.param_counts()
+
+
+class TokenModelFamily(MethodFamily):
+    """A family whose model is a neural token model (an ``nn.Module`` with a frozen dataclass ``spec``)
+    trained by the token recipe (``party.generator.train.train_token_generator``) and saved as data
+    (``party.methods.store.save_weights``, format ``FORMAT``). A subclass gives ``FORMAT``,
+    ``build_model`` / ``key_config`` (for the recipe) and ``model_from_spec`` (a model from a saved
+    spec dict; the place to fill keys older models lack)."""
+
+    FORMAT: str = ""
+    consumes = ("tokens",)
+
+    @classmethod
+    def model_from_spec(cls, spec: dict):
+        raise NotImplementedError
+
+    @classmethod
+    def train(cls, cfg, method: str, out_dir, run, callbacks=None) -> dict:
+        from party.generator.train import train_token_generator
+        return train_token_generator(cfg, method, out_dir, run, cls, callbacks)
+
+    @classmethod
+    def save(cls, model, path, meta: dict) -> None:
+        import dataclasses
+        from party.methods.store import save_weights
+        save_weights(path, cls.FORMAT, dataclasses.asdict(model.spec), meta, model.state_dict())
+
+    @classmethod
+    def wrap(cls, model, meta: dict) -> TokenMethod:
+        return TokenMethod(model, meta, model.spec.streams, model.spec.max_tokens)
+
+    @classmethod
+    def load(cls, folder, map_location: str = "cpu") -> TokenMethod:
+        from party.methods.store import load_weights
+        obj = load_weights(folder, cls.FORMAT, map_location)
+        model = cls.model_from_spec(dict(obj["spec"]))
+        model.load_state_dict(obj["state_dict"])
+        return cls.wrap(model.eval(), obj["meta"])
+
+    @classmethod
+    def recognizes(cls, folder) -> bool:
+        from party.methods.store import weights_format
+        return weights_format(folder) == cls.FORMAT

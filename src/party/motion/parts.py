@@ -87,9 +87,16 @@ class PartLayout:
 
     @classmethod
     def from_config(cls, parts_cfg: Mapping, n_joints: int) -> "PartLayout":
-        """From ``dataset.parts`` (``parts``, ``streams``, ``stream_parts``, ``coherence``)."""
-        return cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["stream_parts"],
-                   parts_cfg["coherence"])
+        """From ``dataset.parts`` (``parts``, ``streams``, ``stream_parts``, ``coherence``; when given,
+        ``part_tokenizers`` must be the root and every part, once each)."""
+        layout = cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["stream_parts"],
+                     parts_cfg["coherence"])
+        if "part_tokenizers" in parts_cfg:
+            pt = [str(p) for p in parts_cfg["part_tokenizers"]]
+            if sorted(pt) != sorted(layout.part_index) or len(set(pt)) != len(pt):
+                raise ValueError(f"dataset.parts.part_tokenizers {pt} must list the root and every part "
+                                 f"({list(layout.part_index)}) once each")
+        return layout
 
     # ------------------------------------------------------------------ slicing
     def index(self, name: str) -> np.ndarray:
@@ -104,8 +111,15 @@ class PartLayout:
         return len(self.index(name))
 
     def stream_joints(self, name: str) -> list[int]:
-        """Joint ids whose positions a stream determines (root included)."""
-        return self._stream_joints[name]
+        """Joint ids whose positions a stream or a part determines, root first. A part alone
+        (``root``, ``left_arm``, ...: a ParCo-like tokenizer's stream) lists the root too: without
+        the root channels its joints are recovered root-relative, the root at the origin."""
+        if name in self._stream_joints:
+            return self._stream_joints[name]
+        if name in self.part_joints:
+            return [0] + [j for j in self.part_joints[name] if j != 0]
+        raise KeyError(f"unknown part/stream {name!r}; streams {list(self.stream_index)}, "
+                       f"parts {list(self.part_index)}")
 
     def slice(self, x, name: str):
         idx = self.index(name)

@@ -10,6 +10,9 @@ seeds 1234, 1, 2 of ParTY / holistic-only)::
     axes: {pg: {off: [generator.methods.party.pg=false], on: [...]}, ...}
     exclude: [{pg: off, ptg: on, hpf: off}]
 
+``method: each`` compares methods: every point names its own with a ``generator.method=<m>``
+override (an axis of methods; ``gen_methods``), and the table's rows are the points of all of them.
+
 Each point is the stage's config plus its overrides: ``train_generator`` into
 ``<generator.ablation.out_dir>/<name>/points/<label>/<method>/`` (resumable: rerunning a sweep
 finds finished points' checkpoints and only re-scores), ``generate`` of ``generator.generate.split``
@@ -33,6 +36,8 @@ from party.methods import family_of
 from party.stage import stage
 from party.sweep import load_sweep, run_grid
 
+EACH = "each"      # ``method: each``: the points name their methods
+
 
 def grid(cfg) -> tuple[dict, Path]:
     """The grid ``generator.ablation.sweep`` names and its folder (``party submit`` runs it as a SLURM array)."""
@@ -45,8 +50,10 @@ def run(cfg, run_) -> list[dict]:
     ab = cfg.generator.ablation
     spec, out = grid(cfg)
     method = str(spec["method"])
-    if method not in cfg.generator.methods:
-        raise KeyError(f"{spec['path']}: method {method!r} is not in generator.methods ({sorted(cfg.generator.methods)})")
+    per_point = method == EACH                 # every point picks its method (generator.method=<m>)
+    if not per_point and method not in cfg.generator.methods:
+        raise KeyError(f"{spec['path']}: method {method!r} is not in generator.methods ({sorted(cfg.generator.methods)}) "
+                       f"and not {EACH!r}")
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
     score = generation_scorer(cfg, ab.replications)
     ctx = load_context(cfg)
@@ -55,8 +62,12 @@ def run(cfg, run_) -> list[dict]:
     def point(pcfg, p: dict, prun) -> dict:
         home = out / "points" / p["label"]
         pcfg = OmegaConf.merge(pcfg, {"generator": {"out_dir": str(home)}})
-        m = family_of(pcfg.generator, method).train(pcfg, method, home / method, prun)
-        gen = generate_run(pcfg, method, home / "generated", progress=pcfg.progress)
+        name = str(pcfg.generator.method) if per_point else method
+        if per_point and not any(str(o).startswith("generator.method=") for o in p.get("overrides", [])):
+            raise ValueError(f"{spec['path']}: method: {EACH} needs every point to set generator.method=<m>; "
+                             f"point {p['label']} does not")
+        m = family_of(pcfg.generator, name).train(pcfg, name, home / name, prun)
+        gen = generate_run(pcfg, name, home / "generated", progress=pcfg.progress)
         row = {"params": int(m["params"]["total"]), "val_loss": round(m["final"]["val/loss"], 4),
                "steps": m["step"], "ait_ms": gen["ait_ms"], **score(home / "generated"), "status": "done"}
         prun.log_metrics({k: v for k, v in row.items() if isinstance(v, (int, float))})

@@ -17,7 +17,9 @@ L_vq = lambda_rec * L_rec + lambda_app * L_app + lambda_feat * L_feat + lambda_v
   at CPU budgets (docs/tokenizers.md, "Collapse"); the default CPU recipe adds these.
 Validation runs whole clips (bucketed, see ``data.BucketDataset``) and reports
 MPJPE in mm, root-aligned per frame (MoMask's protocol) and global, next to the
-mean-pose baseline's (every frame decoded as the dataset mean) on the same frames.
+mean-pose baseline's (every frame decoded as the dataset mean) on the same frames. A
+tokenizer of the root part alone (one joint, no pose) reports its global (trajectory) error
+as its MPJPE, against the mean pose's global error.
 """
 from __future__ import annotations
 
@@ -138,6 +140,8 @@ class VQVAELit(L.LightningModule):
         # the trivial baseline on the same frames: every frame decoded as the dataset mean
         jm = self._joints(torch.zeros_like(out["target"]))
         err_mean = ((jm - jm[..., :1, :]) - (jg - jg[..., :1, :])).norm(dim=-1).mean(-1)
+        if jh.shape[-2] == 1:          # the root part alone has no pose: its error is the trajectory's
+            err, err_mean = err_g, (jm - jg).norm(dim=-1).mean(-1)
         v = self._val
         v["err_mean"] += float((err_mean * m).sum())
         v["err"] += float((err * m).sum())

@@ -1,5 +1,5 @@
-"""The ParTY family: ParTY (``kind: party``) and its holistic-only (``holistic``) and part-wise
-(``partwise``) baselines, one model class (``model.PartyGenerator``) with the switches of
+"""The ParTY family: ParTY (``kind: party``), its holistic-only baseline (``holistic``) and its parts-only
+ablation (``partwise``), one model class (``model.PartyGenerator``) with the switches of
 ``config.PartyConfig``; trained by the token recipe (``party.generator.train``).
 
     generator:
@@ -8,13 +8,9 @@
 """
 from __future__ import annotations
 
-import dataclasses
-from pathlib import Path
-
 from party.methods import register
-from party.methods.base import MethodFamily
 from party.methods.party.config import PartyConfig
-from party.methods.tokens import TokenMethod
+from party.methods.tokens import TokenMethod, TokenModelFamily
 
 FORMAT = "party.generator/1"
 
@@ -31,10 +27,10 @@ class PartyMethod(TokenMethod):
 
 
 @register
-class PartyFamily(MethodFamily):
+class PartyFamily(TokenModelFamily):
     name = "party"
     Config = PartyConfig
-    consumes = ("tokens",)
+    FORMAT = FORMAT
 
     @classmethod
     def build_model(cls, cfg, method: str, ds):
@@ -62,25 +58,12 @@ class PartyFamily(MethodFamily):
         return {"kind": str(method_config(cfg.generator, method).kind)}
 
     @classmethod
-    def train(cls, cfg, method: str, out_dir, run, callbacks=None) -> dict:
-        from party.generator.train import train_token_generator
-        return train_token_generator(cfg, method, out_dir, run, cls, callbacks)
-
-    @classmethod
-    def save(cls, model, path: Path, meta: dict) -> None:
-        from party.methods.store import save_weights
-        save_weights(path, FORMAT, dataclasses.asdict(model.spec), meta, model.state_dict())
-
-    @classmethod
     def wrap(cls, model, meta: dict) -> PartyMethod:
         return PartyMethod(model, meta, model.spec.streams, model.spec.max_tokens)
 
     @classmethod
-    def load(cls, folder, map_location: str = "cpu") -> PartyMethod:
+    def model_from_spec(cls, spec: dict):
         from party.methods.party.model import GeneratorSpec, PartyGenerator
-        from party.methods.store import load_weights
-        obj = load_weights(folder, FORMAT, map_location)
-        spec = dict(obj["spec"])
         spec.setdefault("cond_drop", 0.0)    # models saved before the key existed never saw the null condition
         spec.setdefault("ptg_init", "normal")  # ... and were built with N(0, 0.02) PTG MLPs (only matters at build)
         # ... and before Part Guidance's alignment, null condition and part embeddings were switches:
@@ -90,11 +73,4 @@ class PartyFamily(MethodFamily):
         spec.setdefault("pg_align", "generated")
         spec.setdefault("null_condition", "text")
         spec.setdefault("part_embed", "shared")
-        model = PartyGenerator(GeneratorSpec(**spec))
-        model.load_state_dict(obj["state_dict"])
-        return cls.wrap(model.eval(), obj["meta"])
-
-    @classmethod
-    def recognizes(cls, folder) -> bool:
-        from party.methods.store import weights_format
-        return weights_format(folder) == FORMAT
+        return PartyGenerator(GeneratorSpec(**spec))

@@ -2,7 +2,7 @@
 
 ``kind`` picks the streams and modules: ``party`` (part GPTs guiding the holistic one),
 ``holistic`` (the holistic GPT on the caption alone, T2M-GPT-like) or ``partwise`` (the part
-GPTs alone, composed: ParCo-like); ``pg`` / ``ptg`` / ``hpf`` / ``aux`` switch Part Guidance,
+GPTs alone, composed: parts-only ParTY, an ablation; the ParCo-like baseline is ``party.methods.parco``); ``pg`` / ``ptg`` / ``hpf`` / ``aux`` switch Part Guidance,
 Part-aware Text Grounding, Holistic-Part Fusion and PTG's auxiliary loss (SPEC §2-3, Tab. 5).
 The architecture shared by every kind is ``generator.model`` / ``generator.loss``.
 """
