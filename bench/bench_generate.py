@@ -1,7 +1,7 @@
 """Generation speed of the ParTY generator: KV cache against full recomputation, batch 32 against
 batch 1, measured in the same run on the paper model dims (random weights).
 
-    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3] [--methods party,holistic,parco,party_parts_only]
+    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3] [--methods party,holistic,party_parts_only]
                                    [--text-dim 512] [--threads 1] [--device cpu]
 
 Model numbers come from conf/generator/paper.yaml (``model``, ``methods``); vocabularies and
@@ -104,7 +104,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=196)
     ap.add_argument("--n1", type=int, default=20, help="samples timed at batch 1")
     ap.add_argument("--n32", type=int, default=3, help="batches of 32 timed")
-    ap.add_argument("--methods", default="party,holistic,parco,party_parts_only")
+    ap.add_argument("--methods", default="party,holistic,party_parts_only")
     ap.add_argument("--text-dim", type=int, default=512, help="CLIP ViT-B/32 text embedding width")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")

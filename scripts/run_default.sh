@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up the environment and run the whole pipeline on the embedded default
 # (synthetic dataset, offline MiniLM text encoder, CPU-sized budgets):
-#   prepare -> cache_part_texts -> embed_texts -> train_vqvae (x3) -> extract_tokens
+#   prepare -> cache_part_texts -> embed_texts -> train_vqvae (x3) + train_part_vqvae (x6) -> extract_tokens
 #   -> train_evaluator (x3) -> train_generator (per method) -> generate -> evaluate
 # Independent stages run side by side (`party repro -j N`, N = PARTY_JOBS, default 2:
 # this machine's cores); extra arguments go to `party repro` (stages, -f, -k).

@@ -51,7 +51,7 @@ def stream_nll(model, batch) -> dict[str, torch.Tensor]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
-    ap.add_argument("--methods", nargs="*", default=["party", "holistic", "parco", "party_parts_only"])
+    ap.add_argument("--methods", nargs="*", default=["party", "holistic", "party_parts_only"])
     ap.add_argument("--generators", default=None, help="folder of trained methods (default: generator.out_dir)")
     ap.add_argument("--split", default="train")
     ap.add_argument("--samples", type=int, default=600)

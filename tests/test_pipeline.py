@@ -167,6 +167,36 @@ def test_generator_ablation_grid_on_the_pipeline_outputs(pipeline):
 
 
 @pytest.mark.slow
+def test_method_axis_grid_and_seed_table(pipeline):
+    """`method: each`: every point trains the method it names (ParCo-like beside holistic-only here);
+    scripts/seed_table.py groups the table by method over the seed axis."""
+    work, env, _ = pipeline
+    grid = work / "methods.yaml"
+    grid.write_text("name: tiny_methods\nmethod: each\naxes:\n  seed:\n    a: [seed=1234]\n    b: [seed=7]\n"
+                    "  method:\n    holistic: [generator.method=holistic]\n    parco: [generator.method=parco]\n")
+    _sh([str(BIN / "party"), "gen_ablation", f"generator.ablation.sweep={grid}", "generator.ablation.replications=2"],
+        work, env)
+    out = work / "data/ablations/tiny_methods"
+    rows = (out / "table.csv").read_text().splitlines()
+    assert rows[0].startswith("point,seed,method,params") and len(rows) == 5
+    assert all(r.split(",")[-1] == "done" for r in rows[1:])
+    for seed in ("a", "b"):
+        for m, folder in (("holistic", "holistic"), ("parco", "parco")):
+            assert (out / "points" / f"{seed}-{m}" / folder / "model.pt").exists()
+    res = subprocess.run([sys.executable, str(ROOT / "scripts/seed_table.py"), "--grid", str(out)], cwd=work,
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("| holistic") or ln.startswith("| parco")]
+    assert len(lines) == 2 and all("| 2 |" in ln for ln in lines)      # two seeds per method
+    bad = work / "bad.yaml"
+    bad.write_text("name: tiny_bad\nmethod: each\naxes:\n  hpf:\n    x: [generator.methods.party.hpf=false]\n")
+    fail = subprocess.run([str(BIN / "party"), "gen_ablation", f"generator.ablation.sweep={bad}",
+                           "generator.ablation.replications=2"], cwd=work, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert fail.returncode != 0 and "needs every point to set generator.method" in fail.stdout + fail.stderr
+
+
+@pytest.mark.slow
 def test_queued_experiment_keeps_the_choices_and_shows_its_metrics(pipeline):
     """`party params experiment=<e>` then `dvc exp run --queue -S k=v`: the queued run composes
     conf/ with the kept choice (only k changes), and `dvc exp show --json` holds its metrics."""

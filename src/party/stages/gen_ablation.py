@@ -34,7 +34,7 @@ from party.evaluation.loading import generation_columns, generation_scorer
 from party.generator.generate import generate_run
 from party.methods import family_of
 from party.stage import stage
-from party.sweep import load_sweep, run_grid
+from party.sweep import expand, load_sweep, run_grid
 
 EACH = "each"      # ``method: each``: the points name their methods
 
@@ -54,6 +54,11 @@ def run(cfg, run_) -> list[dict]:
     if not per_point and method not in cfg.generator.methods:
         raise KeyError(f"{spec['path']}: method {method!r} is not in generator.methods ({sorted(cfg.generator.methods)}) "
                        f"and not {EACH!r}")
+    unnamed = [p["label"] for p in expand(spec)
+               if per_point and not any(str(o).startswith("generator.method=") for o in p["overrides"])]
+    if unnamed:
+        raise ValueError(f"{spec['path']}: method: {EACH} needs every point to set generator.method=<m>; "
+                         f"{', '.join(unnamed)} do not")
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
     score = generation_scorer(cfg, ab.replications)
     ctx = load_context(cfg)
@@ -63,9 +68,6 @@ def run(cfg, run_) -> list[dict]:
         home = out / "points" / p["label"]
         pcfg = OmegaConf.merge(pcfg, {"generator": {"out_dir": str(home)}})
         name = str(pcfg.generator.method) if per_point else method
-        if per_point and not any(str(o).startswith("generator.method=") for o in p.get("overrides", [])):
-            raise ValueError(f"{spec['path']}: method: {EACH} needs every point to set generator.method=<m>; "
-                             f"point {p['label']} does not")
         m = family_of(pcfg.generator, name).train(pcfg, name, home / name, prun)
         gen = generate_run(pcfg, name, home / "generated", progress=pcfg.progress)
         row = {"params": int(m["params"]["total"]), "val_loss": round(m["final"]["val/loss"], 4),
