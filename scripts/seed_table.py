@@ -3,7 +3,8 @@
     .venv/bin/python scripts/seed_table.py [--grid data/ablations/gen_methods] [--seed-axis seed]
                                            [--side --samples 50] [--out <grid>/seed_table.md]
 
-Groups the rows of ``<grid>/table.csv`` by every axis but the seed axis (for ``gen_methods``:
+Groups the finished points of a grid (``<grid>/status.json``, so a grid still running or stopped
+part-way is read as far as it got; else ``<grid>/table.csv``) by every axis but the seed axis (for ``gen_methods``:
 method x guidance) and prints, per group and metric, the mean over the seeds, the seed spread
 (max - min) and the mean evaluation CI (95% half-width over the protocol's replications). A
 difference between two groups is beyond the training noise only when it exceeds both the seed
@@ -63,15 +64,20 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     grid = Path(a.grid)
-    table = grid / "table.csv"
-    if not table.is_file():
-        sys.exit(f"{table}: no table; run `party gen_ablation` first")
-    rows = [r for r in csv.DictReader(table.open()) if r.get("status") == "done"]
+    table, status = grid / "table.csv", grid / "status.json"
+    if status.is_file():
+        points = json.loads(status.read_text()).get("points", {})
+        rows = [{k: ("" if v is None else str(v)) for k, v in e["row"].items()}
+                for e in points.values() if e.get("status") == "done" and e.get("row")]
+    elif table.is_file():
+        rows = [r for r in csv.DictReader(table.open()) if r.get("status") == "done"]
+    else:
+        sys.exit(f"{grid}: no status.json or table.csv; run `party gen_ablation` first")
     if not rows:
-        sys.exit(f"{table}: no finished point")
+        sys.exit(f"{grid}: no finished point")
     cols = list(rows[0])
     if a.seed_axis not in cols:
-        sys.exit(f"{table}: no axis {a.seed_axis!r} (columns: {', '.join(cols)})")
+        sys.exit(f"{grid}: no axis {a.seed_axis!r} (columns: {', '.join(cols)})")
     axes = cols[1:cols.index("params")]
     keys = [c for c in axes if c != a.seed_axis]
     metrics = list(METRICS) + ([("side", "named side ↑")] if a.side else [])
