@@ -48,8 +48,8 @@ class ParcoFamily(TokenModelFamily):
         from party.methods import method_config
         g = cfg.generator
         model = plain(g.model)
-        shared = ("mlp_ratio", "dropout", "max_tokens", "text_norm", "cond_drop")    # ParcoSpec.from_config's
-        return {"model": {k: model[k] for k in shared},
+        from party.methods.parco.model import SHARED_MODEL_KEYS
+        return {"model": {k: model[k] for k in SHARED_MODEL_KEYS},
                 "method": {k: v for k, v in plain(method_config(g, method)).items() if k != "family"}}
 
     @classmethod

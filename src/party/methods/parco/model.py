@@ -38,6 +38,10 @@ from party.generator.kv_cache import KVCache
 from party.generator.layers import TEXT_NORMS, TextNorm, attention
 from party.generator.sampling import choose
 
+#: the ``generator.model`` keys a ParCo-like model reads (the rest of its spec is the method's entry)
+SHARED_MODEL_KEYS = ("mlp_ratio", "dropout", "max_tokens", "text_norm", "cond_drop")
+
+
 @dataclass(frozen=True)
 class ParcoSpec:
     streams: Sequence[str]
@@ -62,9 +66,9 @@ class ParcoSpec:
                     windows: Mapping[str, int], text_dim: int) -> "ParcoSpec":
         """From ``generator.model`` (mlp_ratio, dropout, max_tokens, text_norm, cond_drop) and the
         method's entry (``config.ParcoConfig``)."""
-        shared = ("mlp_ratio", "dropout", "max_tokens", "text_norm", "cond_drop")
-        own = [f.name for f in dataclasses.fields(cls) if f.name not in (*shared, "vocab", "windows", "text_dim")]
-        return cls(**{k: method_cfg[k] for k in own}, **{k: model_cfg[k] for k in shared},
+        own = [f.name for f in dataclasses.fields(cls)
+               if f.name not in (*SHARED_MODEL_KEYS, "vocab", "windows", "text_dim")]
+        return cls(**{k: method_cfg[k] for k in own}, **{k: model_cfg[k] for k in SHARED_MODEL_KEYS},
                    vocab={s: int(vocab[s]) for s in method_cfg["streams"]},
                    windows={s: int(windows[s]) for s in method_cfg["streams"]}, text_dim=int(text_dim))
 
@@ -321,6 +325,7 @@ class ParcoGenerator(TextNorm, nn.Module):
         if guided:                                       # rows B..2B-1: the null condition
             c = torch.cat([c, torch.zeros_like(c)])
         e = spec.streams.index(spec.end_stream)
+        others = torch.arange(P, device=dev) != e             # the parts whose END is never sampled
         target = None
         if lengths is not None and spec.end_stream in lengths:
             target = torch.as_tensor(lengths[spec.end_stream], device=dev).long()
@@ -338,8 +343,6 @@ class ParcoGenerator(TextNorm, nn.Module):
             if guided:
                 logits = logits[:, B:] + scale * (logits[:, :B] - logits[:, B:])
             logits = self.mask_invalid(logits)
-            others = torch.ones(P, dtype=torch.bool, device=dev)
-            others[e] = False
             logits[others, :, self.end] = float("-inf")   # only end_stream's END ends a sample
             force = torch.full((B,), k >= M, dtype=torch.bool, device=dev)
             if target is not None:
