@@ -7,7 +7,7 @@ from helpers import rest_pose, wiggle_joints
 from PIL import Image
 
 from party.render import (CENTER_COLOR, LEFT_COLOR, RIGHT_COLOR, render_comparison,
-                          render_frames, render_motion)
+                          render_frames, render_keyframes, render_motion)
 
 
 def walk(n: int, skeleton: str = "t2m") -> np.ndarray:
@@ -121,3 +121,23 @@ def test_view_is_a_rotation_facing_the_body():
     cam_plot = [np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)]
     cam_world = R.T @ cam_plot
     assert cam_world[2] > 0.5 and cam_world[1] > 0    # in front (+z) and above
+
+
+def test_keyframes_sheet_rows_and_poses():
+    """One row per frame asked for, the header only over the first; each row shows the pose of
+    its own frame (a raised left wrist appears in the second row only); bad frames are refused."""
+    still = np.repeat(rest_pose("t2m")[None], 10, 0)
+    moving = still.copy()
+    moving[5:, 20, 1] += 0.8                        # left wrist raised from frame 5
+    sheet = render_keyframes([still, moving], ["a", "b"], [0, 7], title="caption", panel_px=160)
+    plain = next(render_frames([still, moving], panel_px=160))
+    assert sheet.shape[1] == 320 and sheet.dtype == np.uint8
+    assert sheet.shape[0] > 2 * plain.shape[0] - 1              # a header over the first row
+    first, last = sheet[:sheet.shape[0] - plain.shape[0]], sheet[-plain.shape[0]:]
+    red_top = lambda img: np.nonzero(_mask(img[-160:, 160:], LEFT_COLOR))[0].min()   # noqa: E731
+    assert red_top(first) == red_top(plain)            # frame 0: the rest pose, as render_frames draws it
+    assert red_top(last) < red_top(plain) - 5          # frame 7: the raised wrist, higher up
+    with pytest.raises(ValueError, match="within"):
+        render_keyframes([still], [], [10])
+    with pytest.raises(ValueError, match="titles"):
+        render_keyframes([still], ["a", "b"], [0])

@@ -2,10 +2,11 @@
 
 ``render_motion(joints, path)`` draws one motion; ``render_comparison([a, b], titles, path)``
 draws several side by side (e.g. ground truth vs reconstruction) with shared axes, so
-drift and floating show up. Joints are ``(T, J, 3)`` in metres with **y up** (the
-HumanML3D / KIT convention). The figure is drawn along the skeleton's kinematic chains
-(``party.motion.skeleton``): left side red, right side blue, spine/head grey, over a
-ground plane with the root's ground trajectory.
+drift and floating show up; ``render_keyframes`` draws them at a few frames as one still
+image. Joints are ``(T, J, 3)`` in metres with **y up** (the HumanML3D / KIT convention).
+The figure is drawn along the skeleton's kinematic chains (``party.motion.skeleton``): left
+side red, right side blue, spine/head grey, over a ground plane with the root's ground
+trajectory.
 
 The output format follows the suffix: ``.gif`` (Pillow) or ``.mp4`` (H.264 through the
 ffmpeg binary shipped by ``imageio-ffmpeg``). Frames are rendered with blitting (static
@@ -245,6 +246,25 @@ def render_comparison(motions: Sequence, titles: Sequence[str], path: str | os.P
         else:
             _write_mp4(tmp, frames, scene.size, out_fps)
     return path
+
+
+def render_keyframes(motions: Sequence, titles: Sequence[str], frames: Sequence[int],
+                     skeleton_name: str = "t2m", title: str = "", **view) -> np.ndarray:
+    """A contact sheet: the motions side by side (shared axes) at each of ``frames``, one row per
+    frame, stacked top to bottom; the first row carries ``title`` and the panel ``titles``.
+    Returns an (H, W, 3) uint8 image. ``view`` options as in ``render_frames``."""
+    motions = _check_motions(motions, skeleton_name, "render_keyframes")
+    if titles and len(titles) != len(motions):
+        raise ValueError(f"render_keyframes: {len(titles)} titles for {len(motions)} motions")
+    n = max(len(m) for m in motions)
+    if not frames or any(not 0 <= t < n for t in frames):
+        raise ValueError(f"render_keyframes: frames {list(frames)} must be non-empty and within [0, {n})")
+    head = _Scene(motions, list(titles), skeleton_name, title, **view)
+    rows = [head.frame(frames[0], n)]
+    if len(frames) > 1:
+        plain = _Scene(motions, [], skeleton_name, "", **view)
+        rows += [plain.frame(t, n) for t in frames[1:]]
+    return np.concatenate(rows, axis=0)
 
 
 def render_motion(joints, path: str | os.PathLike, skeleton_name: str = "t2m", fps: float = 20,
