@@ -278,3 +278,27 @@ def test_a_training_stage_runs_ddp_as_one_slurm_job(slurm_cluster, tmp_path):
     runs = client.search_runs([exp.experiment_id], "tags.`party.stage` = 'train_evaluator'")
     assert [x.info.status for x in runs] == ["FINISHED", "FINISHED"]
     shutil.rmtree(proj / "resume", ignore_errors=True)
+
+
+def test_a_point_put_back_as_busy_ends_its_run_killed_with_the_reason(tmp_path, monkeypatch):
+    """The attempt that found the training held is not a failure: its run is KILLED, tag party.busy."""
+    import mlflow
+
+    import party.sweep
+    from party.lifecycle import Busy
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.setattr(party.sweep, "BUSY_RETRY_S", 0.01)
+    cfg, spec, tries = _tracked_cfg(tmp_path), _grid(tmp_path), []
+
+    def point(pcfg, p, run):
+        tries.append(p["label"])
+        if tries == ["x"]:
+            raise Busy("ckpt/abc: a training run with the same settings is running there")
+        return {"value": 1}
+    with tracking.start_run(cfg, "s", run_name="grid"):
+        run_grid(cfg, spec, "s", point, tmp_path / "out", ["point", "value"])
+    client = mlflow.MlflowClient(tracking.tracking_uri(cfg))
+    runs = client.search_runs([client.get_experiment_by_name("arr").experiment_id])
+    x = sorted((r for r in runs if r.data.tags.get("party.sweep_point") == "x"), key=lambda r: r.info.start_time)
+    assert [r.info.status for r in x] == ["KILLED", "FINISHED"]
+    assert "ckpt/abc" in x[0].data.tags["party.busy"]

@@ -216,3 +216,64 @@ def test_sweep_unattended_queues_a_second_grid_until_the_first_ends(tmp_path):
     assert "gb: waiting for another grid to finish" in (tmp_path / "logs/gb.log").read_text()
     t = both({"PARTY_SWEEP_OVERLAP": "1"})
     assert t["start", "gb"] < t["end", "ga"]
+
+
+def test_a_point_whose_training_is_held_is_put_back_and_taken_again(tmp_path, monkeypatch):
+    """``Busy`` (another process trains the same model): the point goes back to pending with what it
+    waits for, the worker runs the other points, then takes it again; nothing is marked failed."""
+    import party.sweep
+    from party.lifecycle import Busy
+    monkeypatch.setattr(party.sweep, "BUSY_RETRY_S", 0.01)
+    spec, cfg, out = _setup(tmp_path)
+    calls, seen = [], {}
+
+    def point(pcfg, p, run):
+        calls.append(p["label"])
+        if calls.count("y") == 1 and p["label"] == "y":
+            raise Busy("data/checkpoints/generator/party/abc: a training run with the same settings is running")
+        if p["label"] == "z":
+            seen.update(read_status(out)["points"]["y"])
+        return {"value": pcfg.v.a}
+    rows = run_grid(cfg, spec, "s", point, out, ["point", "value"])
+    assert calls == ["x", "y", "z", "y"]
+    assert seen["status"] == "pending" and "generator/party/abc" in seen["waiting"]
+    assert [r["value"] for r in rows] == [1, 2, 3]
+    assert {k: v["status"] for k, v in read_status(out)["points"].items()} == dict.fromkeys("xyz", "done")
+
+
+def test_two_workers_on_points_of_one_training_wait_for_it_instead_of_failing(tmp_path, monkeypatch):
+    """Two points that share one resume folder (g1 / g2 of one model), two workers: one trains, the
+    other's point waits and then runs; never both in the folder at once, and no point fails."""
+    import multiprocessing as mp
+    import time
+
+    import party.sweep
+    from party.training import hold_resume_dir
+    for var in ("RANK", "LOCAL_RANK", "SLURM_PROCID"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(party.sweep, "BUSY_RETRY_S", 0.1)
+    grid = tmp_path / "g.yaml"
+    grid.write_text("name: g\naxes:\n  guidance: {g1: [v.a=1], g2: [v.a=2]}\n")
+    spec, cfg, out = load_sweep(str(grid)), OmegaConf.create({"tracking": {"enabled": False}, "v": {"a": 0}}), tmp_path / "out"
+    log_path = tmp_path / "calls.log"
+
+    def point(pcfg, p, run):
+        with hold_resume_dir(tmp_path / "train"):
+            with open(log_path, "a") as f:
+                f.write(f"in {p['label']} {time.time()}\n")
+            time.sleep(1.0)
+            with open(log_path, "a") as f:
+                f.write(f"out {p['label']} {time.time()}\n")
+        return {"value": pcfg.v.a}
+    ctx = mp.get_context("fork")
+    workers = [ctx.Process(target=run_grid, args=(cfg, spec, "s", point, out, ["point", "value"])) for _ in range(2)]
+    for w in workers:
+        w.start()
+        time.sleep(0.2)
+    for w in workers:
+        w.join(60)
+    assert [w.exitcode for w in workers] == [0, 0]
+    events = [line.split() for line in log_path.read_text().splitlines()]
+    assert [e[0] for e in events] == ["in", "out", "in", "out"]                  # one at a time
+    assert sorted(e[1] for e in events if e[0] == "in") == ["g1", "g2"]
+    assert {k: v["status"] for k, v in read_status(out)["points"].items()} == {"g1": "done", "g2": "done"}

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from party.lifecycle import Busy
 from party.config import compose, write_params
 from party.training import (build_trainer, config_key, count_params, hold_resume_dir, resume_checkpoint,
                             trainer_kwargs)
@@ -65,7 +66,7 @@ def test_a_second_run_with_the_same_key_is_refused_while_the_first_trains(tmp_pa
         monkeypatch.delenv(var, raising=False)
     folder = tmp_path / "generator" / "party" / "abc"
     with hold_resume_dir(folder):
-        with pytest.raises(RuntimeError, match=re.escape(str(folder)) + f": {REFUSED} \\(pid {os.getpid()} on "):
+        with pytest.raises(Busy, match=re.escape(str(folder)) + f": {REFUSED} \\(pid {os.getpid()} on "):
             with hold_resume_dir(folder):
                 pass
         with hold_resume_dir(folder.parent / "other"):      # another key trains alongside

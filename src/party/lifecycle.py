@@ -2,7 +2,8 @@
 ``Terminated`` so the run ends KILLED with the error recorded, the runs a dead process left
 RUNNING marked KILLED when the store is next opened (``close_orphans``, keyed by ``process_key``),
 the worker processes of a pool ending with the process that started them (``die_with_parent``),
-and a SLURM job preempted by its scheduler's warning signal (``Preempted``, ``requeue_at_exit``)."""
+a SLURM job preempted by its scheduler's warning signal (``Preempted``, ``requeue_at_exit``), and a
+run that finds what it needs held by another live process (``Busy``)."""
 from __future__ import annotations
 
 import contextlib
@@ -144,6 +145,13 @@ def terminate_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+class Busy(RuntimeError):
+    """Another live process holds what this run needs (a training's resume folder,
+    ``party.training.hold_resume_dir``), checked before anything is read or written: the run ends
+    KILLED with tag ``party.busy`` (it was cut short, it did not fail), and a grid's worker puts the
+    point back and takes it again once the holder is done (``party.sweep.run_grid``)."""
 
 
 class Preempted(BaseException):

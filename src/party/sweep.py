@@ -33,7 +33,11 @@ failed sweep resumes where it stopped.
 Workers: several processes running the same grid into the same ``out_dir`` share it. Each
 claims the next point that is neither done (same config) nor running in a live worker,
 under an exclusive lock on ``<out_dir>/.status.lock`` (read, claim, write), so no point runs
-twice; a ``running`` entry whose process is gone (same host) is claimed again. Every worker
+twice; a ``running`` entry whose process is gone (same host) is claimed again. Points that share
+one training (a grid over generation settings of one model) can be claimed by two workers at once:
+the second finds the training's folder held (``party.lifecycle.Busy``), puts the point back
+(``pending``, with what it waits for) and goes on with other points; with none left it retries
+every ``BUSY_RETRY_S`` seconds, and then reuses the finished training. Every worker
 writes the tables when it runs out of points; the last one to finish writes them complete.
 
 SLURM arrays (``party submit``, ``party.slurm``): with ``$PARTY_SWEEP_TASK`` = a point's index
@@ -61,6 +65,7 @@ from omegaconf import OmegaConf
 
 from party import tracking
 from party.io import write_text
+from party.lifecycle import Busy
 from party.names import check_name
 from party.slurm import COLLECT, PARENT_ENV, TASK_ENV
 
@@ -139,6 +144,10 @@ def tables(rows: list[dict], spec: dict, columns: Sequence[str], notes: str = ""
     body = "".join("| " + " | ".join(str(r.get(c, "")) for c in columns) + " |\n" for r in rows)
     md = f"# {spec['name']}\n\n{spec.get('description', '')}\n\n{head}{body}\n{notes}"
     return md, buf.getvalue()
+
+
+#: seconds a worker with only points whose training another process holds waits before trying them again
+BUSY_RETRY_S = 20.0
 
 
 def _numbers(label: str, row: dict) -> dict:
@@ -295,6 +304,7 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
     began = time.time()
     now = lambda: time.strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
     tried: set[str] = set()
+    waiting: dict[str, str] = {}        # points put back because another process holds their training
 
     def current() -> dict:
         """status.json with exactly this grid's points (stale entries of points no longer in the grid
@@ -309,7 +319,7 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
         return _reusable(e, keys[label])
 
     def claimable(label: str, e: dict) -> bool:
-        if label in tried or mode == COLLECT or (mode == "point" and label != only):
+        if label in tried or label in waiting or mode == COLLECT or (mode == "point" and label != only):
             return False
         if e["status"] == "done":
             return not reusable(label, e)
@@ -339,7 +349,16 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
         for label, e in current()["points"].items():
             if reusable(label, e):
                 log.info("sweep %s: point %s done before (%s), reusing its row", spec["name"], label, e.get("finished"))
-    while (claimed := claim()) is not None:
+    while True:
+        if (claimed := claim()) is None:
+            if not waiting:
+                break
+            log.info("sweep %s: %s wait for the training another process holds (%s); trying again in %g s",
+                     spec["name"], ", ".join(waiting), "; ".join(sorted(set(waiting.values()))), BUSY_RETRY_S)
+            time.sleep(BUSY_RETRY_S)
+            tried.difference_update(waiting)
+            waiting.clear()
+            continue
         label, entry = claimed
         tried.add(label)
         p, pcfg = by_label[label], pcfgs[label]
@@ -350,6 +369,11 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
                 entry["run_id"] = prun.info.run_id
                 record(label, entry)
                 row = {"point": label, **p["axes"], **point_fn(pcfg, p, prun)}
+        except Busy as e:               # e.g. g1 / g2 of one training: put back, taken again when free
+            log.info("sweep %s: point %s put back: %s", spec["name"], label, e)
+            waiting[label] = str(e).split(":", 1)[0]
+            record(label, {"status": "pending", "waiting": str(e)[:500]})
+            continue
         except Exception as e:          # recorded, and the grid goes on
             log.exception("sweep %s: point %s failed", spec["name"], label)
             entry.update(status="failed", error=f"{type(e).__name__}: {e}"[:500], finished=now(),

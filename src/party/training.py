@@ -432,7 +432,8 @@ def hold_resume_dir(folder: str | os.PathLike):
     from the first's checkpoint mid-run, and each would copy whichever ``last.ckpt`` was written
     last into its output. The lock is an advisory ``flock``: the OS releases it when the process
     ends, killed or not, so a crashed run never leaves the folder locked. A second run raises
-    RuntimeError naming the folder and the process holding it, before it reads anything there."""
+    ``party.lifecycle.Busy`` naming the folder and the process holding it, before it reads anything
+    there."""
     folder = Path(folder)
     if _launch_rank() != 0:
         yield folder
@@ -448,7 +449,8 @@ def hold_resume_dir(folder: str | os.PathLike):
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
-            raise RuntimeError(f"{folder}: a training run with the same settings (the same resume key) is "
+            from party.lifecycle import Busy
+            raise Busy(f"{folder}: a training run with the same settings (the same resume key) is "
                                f"running there ({holder}); both would write its last.ckpt. Wait for it to "
                                "finish (this run then resumes or reuses its result), or change a setting "
                                "such as the seed") from None

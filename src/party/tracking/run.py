@@ -7,7 +7,7 @@ import os
 import subprocess
 from typing import Any, Iterator, Mapping
 
-from party.lifecycle import _SIGNALLED, Preempted, close_orphans, process_key
+from party.lifecycle import _SIGNALLED, Busy, Preempted, close_orphans, process_key
 from party.tracking.log import NullRun, _config_yaml, _RunMethods, flatten_config, is_rank_zero
 from party.tracking.store import _ORPHANS_CLOSED, _experiment_id, _set_tracking_uri, _tcfg, resolve_uri
 
@@ -133,16 +133,18 @@ def start_run(cfg, stage: str, run_name: str | None = None, tags: Mapping[str, A
 
 @contextlib.contextmanager
 def _ending() -> Iterator[None]:
-    """End the active run when the body ends: FINISHED, or when it raises KILLED on Ctrl-C, SIGTERM
-    or SLURM's preemption (tag ``party.preempted``), else FAILED."""
+    """End the active run when the body ends: FINISHED, or when it raises KILLED on Ctrl-C, SIGTERM,
+    SLURM's preemption (tag ``party.preempted``) or ``Busy`` (tag ``party.busy``), else FAILED."""
     import mlflow
     try:
         yield
     except BaseException as e:
-        killed = isinstance(e, (KeyboardInterrupt, Preempted)) or bool(_SIGNALLED)
+        killed = isinstance(e, (KeyboardInterrupt, Preempted, Busy)) or bool(_SIGNALLED)
         _SIGNALLED.clear()
         if isinstance(e, Preempted):
             mlflow.set_tag("party.preempted", str(e.job_id))
+        if isinstance(e, Busy):
+            mlflow.set_tag("party.busy", str(e)[:250])
         mlflow.end_run("KILLED" if killed else "FAILED")
         raise
     mlflow.end_run("FINISHED")
