@@ -1,15 +1,19 @@
 """Mean over training seeds and the seed spread of a generator grid's table (``party gen_ablation``).
 
     .venv/bin/python scripts/seed_table.py [--grid data/ablations/gen_methods] [--seed-axis seed]
-                                           [--side --samples 50] [--out <grid>/seed_table.md]
+                                           [--within guidance] [--side --samples 50]
+                                           [--out <grid>/seed_table.md]
 
 Groups the finished points of a grid (``<grid>/status.json``, so a grid still running or stopped
-part-way is read as far as it got; else ``<grid>/table.csv``) by every axis but the seed axis (for ``gen_methods``:
-method x guidance) and prints, per group and metric, the mean over the seeds, the seed spread
-(max - min) and the mean evaluation CI (95% half-width over the protocol's replications). A
-difference between two groups is beyond the training noise only when it exceeds both the seed
-spreads and the CIs. ``--side`` adds the named-side rate of ``scripts/check_generator.py`` for
-each point's trained model at that point's guidance scale (cached in ``<grid>/side/<point>.json``).
+part-way is read as far as it got; else ``<grid>/table.csv``) by every axis but the seed axis (for
+``gen_methods``: method x guidance) and prints, per group and metric, the mean over the seeds, the
+lowest and highest seed and the mean evaluation CI (95% half-width over the protocol's
+replications), then ranks the groups that share their ``--within`` labels (default: the spec's
+``seeds:``) and says whether each lead is beyond the training noise (``party.seeds``: the seed
+ranges do not overlap and the gap exceeds both CIs). ``party results`` renders the same table for
+every grid with a ``seeds:`` entry. ``--side`` adds the named-side rate of
+``scripts/check_generator.py`` for each point's trained model at that point's guidance scale (cached
+in ``<grid>/side/<point>.json``, where ``party results`` reads it too).
 """
 from __future__ import annotations
 
@@ -20,11 +24,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
-METRICS = [("top1", "Top 1 ↑"), ("fid", "FID ↓"), ("arms_top1", "Arms Top 1 ↑"), ("legs_top1", "Legs Top 1 ↑"),
-           ("coherence_tc", "TC ↑"), ("coherence_sc", "SC ↑")]
-
+from party import seeds
+from party.sweep import load_sweep
 
 def _scale(home: Path, method: str) -> float | None:
     """The guidance scale the point generated with (its trained method's ``config.json``)."""
@@ -57,7 +58,9 @@ def side_rate(grid: Path, row: dict, samples: int, params: str) -> float | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--grid", default="data/ablations/gen_methods")
-    ap.add_argument("--seed-axis", default="seed")
+    ap.add_argument("--seed-axis", default=None, help="default: the grid spec's seeds.axis, else 'seed'")
+    ap.add_argument("--within", nargs="*", default=None,
+                    help="compare the groups that share these axes' labels (default: the spec's seeds.within)")
     ap.add_argument("--side", action="store_true", help="add the named-side rate (scripts/check_generator.py)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--params", default="params.yaml")
@@ -65,10 +68,13 @@ def main() -> None:
     a = ap.parse_args()
     grid = Path(a.grid)
     table, status = grid / "table.csv", grid / "status.json"
+    spec = {}
     if status.is_file():
-        points = json.loads(status.read_text()).get("points", {})
-        rows = [{k: ("" if v is None else str(v)) for k, v in e["row"].items()}
-                for e in points.values() if e.get("status") == "done" and e.get("row")]
+        st = json.loads(status.read_text())
+        points = st.get("points", {})
+        rows = [dict(e["row"]) for e in points.values() if e.get("status") == "done" and e.get("row")]
+        if st.get("sweep") and Path(st["sweep"]).is_file():
+            spec = load_sweep(st["sweep"])
     elif table.is_file():
         rows = [r for r in csv.DictReader(table.open()) if r.get("status") == "done"]
     else:
@@ -76,33 +82,18 @@ def main() -> None:
     if not rows:
         sys.exit(f"{grid}: no finished point")
     cols = list(rows[0])
-    if a.seed_axis not in cols:
-        sys.exit(f"{grid}: no axis {a.seed_axis!r} (columns: {', '.join(cols)})")
-    axes = cols[1:cols.index("params")]
-    keys = [c for c in axes if c != a.seed_axis]
-    metrics = list(METRICS) + ([("side", "named side ↑")] if a.side else [])
+    declared = spec.get("seeds") or {}
+    seed_axis = a.seed_axis or declared.get("axis", "seed")
+    within = a.within if a.within is not None else declared.get("within", [])
+    axes = list(spec["axes"]) if spec else cols[1:cols.index("params")]
+    if seed_axis not in axes:
+        sys.exit(f"{grid}: no axis {seed_axis!r} (axes: {', '.join(axes)})")
     if a.side:
         for r in rows:
-            r["side"] = side_rate(grid, r, a.samples, a.params)
-    groups: dict[tuple, list[dict]] = {}
-    for r in rows:
-        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
-    head = [*keys, "seeds", *[lab for _, lab in metrics]]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for g, rs in groups.items():
-        cells = [*g, str(len(rs))]
-        for key, _ in metrics:
-            v = np.array([float(r[key]) for r in rs if r.get(key) not in (None, "")])
-            ci = [float(r[f"{key}_ci95"]) for r in rs if r.get(f"{key}_ci95") not in (None, "")]
-            if not len(v):
-                cells.append("–")
-                continue
-            cell = f"{v.mean():.3f} (spread {v.max() - v.min():.3f}"
-            cell += f"; CI ±{np.mean(ci):.3f})" if ci else ")"
-            cells.append(cell)
-        lines.append("| " + " | ".join(cells) + " |")
-    text = (f"{grid.name}: mean over training seeds (seed spread = max - min; CI = mean 95% half-width of the "
-            f"evaluation)\n\n" + "\n".join(lines) + "\n")
+            r[seeds.SIDE] = side_rate(grid, r, a.samples, a.params)
+    groups = seeds.summarize(rows, axes, seed_axis)
+    text = "\n".join([f"{grid.name}: mean over training seeds (axis `{seed_axis}`)", "",
+                      *seeds.render(groups, within, declared.get("columns"), declared.get("focus", []))])
     print(text)
     Path(a.out or grid / "seed_table.md").write_text(text)
 

@@ -11,7 +11,9 @@ needs editing by hand. It reads:
 - ``<eval.metrics_dir>/<source>.json`` (``metrics/eval``): the git-tracked means, checked against
   metrics.json (they are written together; a difference means one of them is stale);
 - ``<ablation.out_dir>/<grid>/table.md`` of ``vqvae.ablation`` and ``generator.ablation``
-  (``data/ablations``): the table of every sweep that ran, with its points' status;
+  (``data/ablations``): the table of every sweep that ran, with its points' status; for a grid
+  with a seed axis (``seeds:`` in its spec) also its finished rows, rendered as the mean over
+  seeds with the seed range and whether each lead is beyond it (``party.seeds``);
 - ``logs/repro/summary.json``: the per-stage times of the last ``party repro`` and the machine it
   ran on (``party.repro.machine_info``: CPU, cores, the precision ``auto`` resolved to, the commit).
 
@@ -34,6 +36,7 @@ from pathlib import Path
 
 import yaml
 
+from party import seeds
 from party.evaluation.report import DIRECTIONS, rank
 from party.evaluation.report import score as report_score
 
@@ -116,9 +119,39 @@ def grid_tables(root: Path, params: Mapping) -> list[dict]:
             if status.is_file():
                 for p in (_read_json(status, "sweep status").get("points") or {}).values():
                     counts[p.get("status", "?")] = counts.get(p.get("status", "?"), 0) + 1
-            out.append({"name": table.parent.name, "path": table.relative_to(root).as_posix(),
-                        "table_md": table.read_text(), "points": counts})
+            entry = {"name": table.parent.name, "path": table.relative_to(root).as_posix(),
+                     "table_md": table.read_text(), "points": counts}
+            if status.is_file():
+                entry.update(seed_rows(root, table.parent, _read_json(status, "sweep status")))
+            out.append(entry)
     return out
+
+
+def seed_rows(root: Path, grid: Path, status: Mapping) -> dict:
+    """For a grid whose spec declares a seed axis (``seeds:``, ``party.seeds``): ``{"seeds": {"axis",
+    "within", "axes"}, "rows": [...]}``, the finished points' rows (axes and metric columns), each
+    with its named-side rate where ``scripts/seed_table.py --side`` cached one; else {}."""
+    from party.seeds import SIDE, metric_columns
+    from party.sweep import load_sweep
+
+    path = root / str(status.get("sweep") or "")
+    if not status.get("sweep") or not path.is_file():
+        return {}
+    spec = load_sweep(str(path))
+    if "seeds" not in spec:
+        return {}
+    rows = []
+    for label, e in (status.get("points") or {}).items():
+        if e.get("status") != "done" or not isinstance(e.get("row"), Mapping):
+            continue
+        row = dict(e["row"])
+        side = grid / "side" / f"{label}.json"
+        if side.is_file():
+            row[SIDE] = next(iter(_read_json(side, "named-side check").values()))["mean"]
+        rows.append(row)
+    keep = [*spec["axes"], *(c for col in metric_columns(rows) for c in (col, f"{col}_ci95"))]
+    return {"seeds": {**spec["seeds"], "axes": list(spec["axes"])},
+            "rows": [{k: r[k] for k in keep if k in r} for r in rows]}
 
 
 def gather(root: Path = Path(".")) -> dict:
@@ -384,6 +417,11 @@ def render_grids(grids: Sequence[Mapping]) -> list[str]:
         pts = ", ".join(f"{n} {k}" for k, n in sorted((g.get("points") or {}).items()))
         out += [f"From `{g['path']}`" + (f" (points: {pts})" if pts else "") + ":", "",
                 _demote(g.get("table_md", ""), 2), ""]
+        if g.get("seeds") and g.get("rows"):
+            sd = g["seeds"]
+            groups = seeds.summarize(g["rows"], sd["axes"], sd["axis"])
+            out += [f"#### {g['name']}: mean over training seeds (axis `{sd['axis']}`)", "",
+                    *seeds.render(groups, sd["within"], sd.get("columns"), sd.get("focus", []))]
     return out
 
 

@@ -11,6 +11,11 @@ A grid is a YAML file (``conf/sweep/<name>.yaml`` or any path)::
       model:  {baseline: [vqvae.model.lte.enabled=false, ...], lte_gte: [...]}
     exclude:                           # optional: points left out ({axis: label} all matching)
       - {window: w4, model: baseline}
+    seeds: {axis: seed, within: []}    # optional: an axis of training seeds (``party.seeds``: the
+                                       # mean over seeds and whether a lead beats the seed spread,
+                                       # comparing the groups that share their ``within`` labels;
+                                       # optional ``columns``: the metric columns shown, ``focus``:
+                                       # groups set against each other group)
 
 ``name`` and the labels name folders (``<out_dir>/<name>/points/<label>-<label>/``), so each is
 a plain name (``party.names``).
@@ -104,6 +109,19 @@ def load_sweep(name_or_path: str, conf_dir: str | Path = "conf/sweep",
         bad = {a: lab for a, lab in (ex or {}).items() if a not in spec["axes"] or lab not in spec["axes"][a]}
         if not ex or bad:
             raise ValueError(f"{p}: exclude entry {ex} must map axes to their labels (unknown: {bad or 'empty'})")
+    seeds = spec.get("seeds")
+    if seeds is not None:
+        axis = seeds.get("axis") if isinstance(seeds, dict) else None
+        within = seeds.get("within", []) if isinstance(seeds, dict) else None
+        if axis not in spec["axes"] or not isinstance(within, list) or \
+                any(a not in spec["axes"] or a == axis for a in within):
+            raise ValueError(f"{p}: 'seeds' must be {{axis: <an axis>, within: [<other axes>]}}, got {seeds}")
+        extra = {k: seeds[k] for k in ("columns", "focus") if k in seeds}
+        if not all(isinstance(v, list) and all(isinstance(x, str) for x in v) for v in extra.values()) or \
+                set(seeds) - {"axis", "within", "columns", "focus"}:
+            raise ValueError(f"{p}: 'seeds' takes axis, within, columns (metric columns) and focus (group "
+                             f"names), the last two lists of strings; got {seeds}")
+        spec["seeds"] = {"axis": axis, "within": within, **extra}
     spec["path"] = str(p)
     return spec
 
