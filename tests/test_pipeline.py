@@ -187,7 +187,7 @@ def test_method_axis_grid_and_seed_table(pipeline):
                          env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     lines = [ln for ln in res.stdout.splitlines() if ln.startswith("| holistic") or ln.startswith("| parco")]
-    assert len(lines) == 2 and all("| 2 |" in ln for ln in lines)      # two seeds per method
+    assert len(lines) == 2 and all(ln.split(" | ")[1] == "a, b" for ln in lines)   # two seeds per method
     bad = work / "bad.yaml"
     bad.write_text("name: tiny_bad\nmethod: each\naxes:\n  hpf:\n    x: [generator.methods.party.hpf=false]\n")
     fail = subprocess.run([str(BIN / "party"), "gen_ablation", f"generator.ablation.sweep={bad}",
