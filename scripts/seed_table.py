@@ -91,9 +91,8 @@ def main() -> None:
     if a.side:
         for r in rows:
             r[seeds.SIDE] = side_rate(grid, r, a.samples, a.params)
-    groups = seeds.summarize(rows, axes, seed_axis)
     text = "\n".join([f"{grid.name}: mean over training seeds (axis `{seed_axis}`)", "",
-                      *seeds.render(groups, within, declared.get("columns"), declared.get("focus", []))])
+                      *seeds.grid_lines(rows, axes, {**declared, "axis": seed_axis, "within": within})])
     print(text)
     Path(a.out or grid / "seed_table.md").write_text(text)
 

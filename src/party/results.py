@@ -116,14 +116,11 @@ def grid_tables(root: Path, params: Mapping) -> list[dict]:
         for table in sorted((root / d).glob("*/table.md")):
             counts: dict[str, int] = {}
             status = table.parent / "status.json"
-            if status.is_file():
-                for p in (_read_json(status, "sweep status").get("points") or {}).values():
-                    counts[p.get("status", "?")] = counts.get(p.get("status", "?"), 0) + 1
-            entry = {"name": table.parent.name, "path": table.relative_to(root).as_posix(),
-                     "table_md": table.read_text(), "points": counts}
-            if status.is_file():
-                entry.update(seed_rows(root, table.parent, _read_json(status, "sweep status")))
-            out.append(entry)
+            st = _read_json(status, "sweep status") if status.is_file() else {}
+            for p in (st.get("points") or {}).values():
+                counts[p.get("status", "?")] = counts.get(p.get("status", "?"), 0) + 1
+            out.append({"name": table.parent.name, "path": table.relative_to(root).as_posix(),
+                        "table_md": table.read_text(), "points": counts, **seed_rows(root, table.parent, st)})
     return out
 
 
@@ -131,7 +128,6 @@ def seed_rows(root: Path, grid: Path, status: Mapping) -> dict:
     """For a grid whose spec declares a seed axis (``seeds:``, ``party.seeds``): ``{"seeds": {"axis",
     "within", "axes"}, "rows": [...]}``, the finished points' rows (axes and metric columns), each
     with its named-side rate where ``scripts/seed_table.py --side`` cached one; else {}."""
-    from party.seeds import SIDE, metric_columns
     from party.sweep import load_sweep
 
     path = root / str(status.get("sweep") or "")
@@ -147,9 +143,9 @@ def seed_rows(root: Path, grid: Path, status: Mapping) -> dict:
         row = dict(e["row"])
         side = grid / "side" / f"{label}.json"
         if side.is_file():
-            row[SIDE] = next(iter(_read_json(side, "named-side check").values()))["mean"]
+            row[seeds.SIDE] = next(iter(_read_json(side, "named-side check").values()))["mean"]
         rows.append(row)
-    keep = [*spec["axes"], *(c for col in metric_columns(rows) for c in (col, f"{col}_ci95"))]
+    keep = [*spec["axes"], *(c for col in seeds.metric_columns(rows) for c in (col, f"{col}_ci95"))]
     return {"seeds": {**spec["seeds"], "axes": list(spec["axes"])},
             "rows": [{k: r[k] for k in keep if k in r} for r in rows]}
 
@@ -419,9 +415,8 @@ def render_grids(grids: Sequence[Mapping]) -> list[str]:
                 _demote(g.get("table_md", ""), 2), ""]
         if g.get("seeds") and g.get("rows"):
             sd = g["seeds"]
-            groups = seeds.summarize(g["rows"], sd["axes"], sd["axis"])
             out += [f"#### {g['name']}: mean over training seeds (axis `{sd['axis']}`)", "",
-                    *seeds.render(groups, sd["within"], sd.get("columns"), sd.get("focus", []))]
+                    *seeds.grid_lines(g["rows"], sd["axes"], sd)]
     return out
 
 

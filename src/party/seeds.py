@@ -91,15 +91,20 @@ def _name(g: Mapping, within: Sequence[str]) -> str:
     return "-".join(lab for a, lab in g["labels"].items() if a not in within) or "all"
 
 
+def _contexts(groups: Sequence[Mapping], within: Sequence[str]) -> dict[tuple, list[Mapping]]:
+    """The groups by their labels on ``within``, in first-seen order."""
+    out: dict[tuple, list[Mapping]] = {}
+    for g in groups:
+        out.setdefault(tuple(g["labels"].get(a, "") for a in within), []).append(g)
+    return out
+
+
 def compare(groups: Sequence[Mapping], columns: Sequence[str], within: Sequence[str] = ()) -> list[dict]:
     """Per context (the labels on ``within``) and ranked column: ``{"context", "column", "header",
     "ranking": [(group, mean, min, max, ci)], "best", "second", "beyond"}``; ``beyond`` needs at
     least two seeds in both groups, non-overlapping seed ranges and a gap above both CIs."""
-    contexts: dict[tuple, list[Mapping]] = {}
-    for g in groups:
-        contexts.setdefault(tuple(g["labels"].get(a, "") for a in within), []).append(g)
     out = []
-    for ctx, gs in contexts.items():
+    for ctx, gs in _contexts(groups, within).items():
         for c in columns:
             _, header, direction = column_metric(c)
             if direction not in ("higher", "lower"):
@@ -127,11 +132,8 @@ def against(groups: Sequence[Mapping], focus: str, columns: Sequence[str], withi
     """The group named ``focus`` against every other group of its context: ``{"context", "other",
     "cells": {column: (difference, verdict)}}``, the difference signed so that > 0 favours ``focus``,
     verdict ``"ahead"`` / ``"behind"`` beyond the training noise, else ``"within"``."""
-    contexts: dict[tuple, list[Mapping]] = {}
-    for g in groups:
-        contexts.setdefault(tuple(g["labels"].get(a, "") for a in within), []).append(g)
     out = []
-    for ctx, gs in contexts.items():
+    for ctx, gs in _contexts(groups, within).items():
         mine = next((g for g in gs if _name(g, within) == focus), None)
         if mine is None:
             continue
@@ -212,3 +214,10 @@ def render(groups: Sequence[Mapping], within: Sequence[str] = (), columns: Seque
             cells = [_diff(*r["cells"][c]) if c in r["cells"] else "–" for c in cols]
             lines.append("| " + " | ".join([*r["context"].values(), r["other"], *cells]) + " |")
     return lines + [""]
+
+
+def grid_lines(rows: Sequence[Mapping], axes: Sequence[str], declared: Mapping) -> list[str]:
+    """``render`` of a grid's rows as its spec's ``seeds:`` entry (``declared``: axis, within, and
+    optionally columns and focus) lays them out."""
+    groups = summarize(rows, axes, declared["axis"])
+    return render(groups, declared.get("within", []), declared.get("columns"), declared.get("focus", []))
