@@ -13,7 +13,9 @@ replications), then ranks the groups that share their ``--within`` labels (defau
 ranges do not overlap and the gap exceeds both CIs). ``party results`` renders the same table for
 every grid with a ``seeds:`` entry. ``--side`` adds the named-side rate of
 ``scripts/check_generator.py`` for each point's trained model at that point's guidance scale (cached
-in ``<grid>/side/<point>.json``, where ``party results`` reads it too).
+in ``<grid>/side/<point>.json``, where ``party results`` reads it too) and rewrites the grid's
+``report.html`` (``party.seeds.grid_report``: the table and, for a grid with a ``curve`` axis, the
+metrics against the steps trained) with them.
 """
 from __future__ import annotations
 
@@ -95,6 +97,10 @@ def main() -> None:
                       *seeds.grid_lines(rows, axes, {**declared, "axis": seed_axis, "within": within})])
     print(text)
     Path(a.out or grid / "seed_table.md").write_text(text)
+    if spec.get("seeds") and status.is_file():      # the grid's report.html, with the side rates cached above
+        report = seeds.write_grid_report(grid, spec, json.loads(status.read_text()).get("points", {}))
+        if report is not None:
+            print(f"wrote {report}")
 
 
 if __name__ == "__main__":

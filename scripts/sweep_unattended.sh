@@ -7,7 +7,8 @@
 # the sweep's (nonzero when a point failed, so cron mails it / systemd marks the unit failed).
 # PARTY_SWEEP_WORKERS=N (default 1) starts N workers on the grid at once, each with
 # OMP_NUM_THREADS = cores / N: they share its points (party.sweep: each claims the next one
-# under a lock on status.json), so N points train side by side. Grids queue: a second grid
+# under a lock on status.json), so N points train side by side. PARTY_SWEEP_GPUS=1 gives worker i
+# the GPU i alone (CUDA_VISIBLE_DEVICES=i; start as many workers as GPUs). Grids queue: a second grid
 # started while one runs waits for it (logs/.sweeps.lock; PARTY_SWEEP_OVERLAP=1: no waiting).
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -40,6 +41,7 @@ workers=${PARTY_SWEEP_WORKERS:-1}
 threads=$(( $(nproc) / workers )); (( threads >= 1 )) || threads=1
 pids=()
 for ((i = 0; i < workers; i++)); do
+  if [[ "${PARTY_SWEEP_GPUS:-0}" == 1 ]]; then export CUDA_VISIBLE_DEVICES=$i; fi
   OMP_NUM_THREADS=$threads .venv/bin/party "$stage" "$key=$grid" "$@" >> "$log" 2>&1 &
   pids+=($!)
   sleep 2   # the first worker claims its point before the next starts

@@ -277,3 +277,56 @@ def test_two_workers_on_points_of_one_training_wait_for_it_instead_of_failing(tm
     assert [e[0] for e in events] == ["in", "out", "in", "out"]                  # one at a time
     assert sorted(e[1] for e in events if e[0] == "in") == ["g1", "g2"]
     assert {k: v["status"] for k, v in read_status(out)["points"].items()} == {"g1": "done", "g2": "done"}
+
+
+def test_gpu_budget_runs_one_worker_per_gpu_and_refuses_without_one(tmp_path):
+    """scripts/gpu_budget.sh against stand-ins (setup, ``party``, torch's GPU count, seed_table.py):
+    without a GPU it stops with a message naming the CPU grid; with two it composes trainer=gpu,
+    reproduces the generators' inputs, starts gen_budget_gpu on two workers, each on its own GPU and
+    one device, then writes the report."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    calls = _unattended(tmp_path, 'echo "${CUDA_VISIBLE_DEVICES:-none} $*" >> {calls}\nexit 0\n')
+    shutil.copy(repo / "scripts/gpu_budget.sh", tmp_path / "scripts")
+    (tmp_path / "scripts/setup.sh").write_text("exit 0\n")
+    (tmp_path / "scripts/seed_table.py").write_text(f"import sys\nopen({str(calls)!r}, 'a').write('seed_table ' + ' '.join(sys.argv[1:]) + '\\n')\n")
+    py = tmp_path / ".venv/bin/python"
+    py.unlink()
+    py.write_text(f'#!/usr/bin/env bash\nif [[ "$*" == *device_count* ]]; then echo "$FAKE_GPUS"; exit 0; fi\nexec {sys.executable} "$@"\n')
+    py.chmod(0o755)
+    run = lambda gpus: subprocess.run(["bash", "scripts/gpu_budget.sh", "dataset=x"], cwd=tmp_path, capture_output=True,  # noqa: E731
+                                      text=True, timeout=60, env={**os.environ, "FAKE_GPUS": gpus})
+    r = run("0")
+    assert r.returncode == 1 and "no CUDA GPU visible" in r.stderr and "gen_budget" in r.stderr
+    assert not calls.exists()
+    r = run("2")
+    assert r.returncode == 0, r.stderr
+    lines = calls.read_text().splitlines()
+    assert lines[:2] == ["none params trainer=gpu dataset=x", "none repro -j 2 embed_texts extract_tokens train_evaluator"]
+    workers = sorted(ln for ln in lines if "gen_ablation" in ln)
+    assert workers == [f"{i} gen_ablation generator.ablation.sweep=gen_budget_gpu generator.ablation.replications=20 "
+                       "trainer.devices=1 trainer.strategy=auto" for i in (0, 1)]
+    assert lines[-1] == "seed_table --grid data/ablations/gen_budget_gpu --side"
+
+
+def test_a_seeded_grid_with_a_curve_writes_its_report(tmp_path):
+    """run_grid writes <out>/report.html for a grid with a seeds: entry: the seed table with the
+    steps trained and the curve over the declared axis; a grid without one gets none."""
+    grid = tmp_path / "g.yaml"
+    grid.write_text("name: g\nseeds: {axis: seed, within: [budget], curve: budget}\naxes:\n"
+                    "  budget: {b1: [v.steps=10], b3: [v.steps=30]}\n  seed: {s1: [v.s=1], s2: [v.s=2]}\n"
+                    "  method: {a: [v.m=1], b: [v.m=2]}\n")
+    cfg = OmegaConf.create({"tracking": {"enabled": False}, "v": {"steps": 0, "s": 0, "m": 0}})
+    point = lambda pcfg, p, run: {"top1": 0.1 * pcfg.v.m + 0.001 * pcfg.v.steps + 0.01 * pcfg.v.s,  # noqa: E731
+                                  "top1_ci95": 0.001, "steps": pcfg.v.steps}
+    run_grid(cfg, load_sweep(str(grid)), "s", point, tmp_path / "curve", ["point", "top1", "top1_ci95", "steps"])
+    page = (tmp_path / "curve" / "report.html").read_text()
+    assert "Metrics against budget" in page and "data:image/png;base64," in page
+    assert "<td>b3</td><td>b</td><td>s1, s2</td><td>30</td>" in page
+    spec, cfg, out = _setup(tmp_path)
+    run_grid(cfg, spec, "s", lambda pcfg, p, run: {"value": 1}, out, ["point", "value"])
+    assert not (out / "report.html").exists()

@@ -136,16 +136,8 @@ def seed_rows(root: Path, grid: Path, status: Mapping) -> dict:
     spec = load_sweep(str(path))
     if "seeds" not in spec:
         return {}
-    rows = []
-    for label, e in (status.get("points") or {}).items():
-        if e.get("status") != "done" or not isinstance(e.get("row"), Mapping):
-            continue
-        row = dict(e["row"])
-        side = grid / "side" / f"{label}.json"
-        if side.is_file():
-            row[seeds.SIDE] = next(iter(_read_json(side, "named-side check").values()))["mean"]
-        rows.append(row)
-    keep = [*spec["axes"], *(c for col in seeds.metric_columns(rows) for c in (col, f"{col}_ci95"))]
+    rows = seeds.finished_rows(grid, status.get("points") or {})
+    keep = [*spec["axes"], seeds.STEPS, *(c for col in seeds.metric_columns(rows) for c in (col, f"{col}_ci95"))]
     return {"seeds": {**spec["seeds"], "axes": list(spec["axes"])},
             "rows": [{k: r[k] for k in keep if k in r} for r in rows]}
 

@@ -14,13 +14,21 @@ the sum of their evaluation CIs. With three seeds that is a strict test; a lead 
 that another set of seeds could reverse.
 
 ``against`` sets one group (ParTY) beside each other group of its context, metric by metric, with
-the same test. ``render`` lays them out as markdown (``party results``' Sweeps section, ``scripts/seed_table.py``).
+the same test. ``render`` lays them out as markdown (``party results``' Sweeps section, ``scripts/seed_table.py``),
+with the optimizer steps each group's models actually trained (the rows' ``steps``).
+
+A grid that also declares ``curve: <axis>`` (one of ``within``: ``gen_budget``'s training budget)
+is drawn by ``curve_png``: one panel per metric, the metric against the steps trained, one line
+per group of the other axes (mean over seeds) with a band for the seed range; ``party gen_ablation``
+and ``scripts/seed_table.py`` put it in the grid's ``report.html`` (``grid_report``).
 Rows are the ``row`` dicts ``party.sweep.run_grid`` stores in ``status.json`` (strings or numbers);
 ``side`` (the named-side rate of ``scripts/check_generator.py``) is a metric column when present.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 #: a metric column's base name -> (label, direction); a column is ``<name>`` or ``<stream>_<name>``
 DIRECTIONS = {"top1": ("Top 1", "higher"), "top2": ("Top 2", "higher"), "top3": ("Top 3", "higher"),
@@ -28,6 +36,8 @@ DIRECTIONS = {"top1": ("Top 1", "higher"), "top2": ("Top 2", "higher"), "top3": 
               "tc": ("TC", "higher"), "sc": ("SC", "higher"), "side": ("named side", "higher")}
 ARROWS = {"higher": "↑", "lower": "↓", "target": "→"}
 SIDE = "side"
+#: the row column with the optimizer steps a point's model trained (``party gen_ablation``)
+STEPS = "steps"
 
 
 def _float(v) -> float | None:
@@ -62,8 +72,8 @@ def metric_columns(rows: Sequence[Mapping]) -> list[str]:
 def summarize(rows: Sequence[Mapping], axes: Sequence[str], seed_axis: str,
               columns: Sequence[str] | None = None) -> list[dict]:
     """Groups of ``rows`` over ``seed_axis``: ``{"labels": {axis: label}, "seeds": [label],
-    "stats": {column: {"mean", "min", "max", "spread", "ci", "n"}}}``, in first-seen order (``ci``
-    None for a column without ``_ci95``)."""
+    "steps": [distinct steps trained], "stats": {column: {"mean", "min", "max", "spread", "ci",
+    "n"}}}``, in first-seen order (``ci`` None for a column without ``_ci95``)."""
     if seed_axis not in axes:
         raise ValueError(f"seed axis {seed_axis!r} is not an axis of the grid ({', '.join(axes)})")
     keys = [a for a in axes if a != seed_axis]
@@ -83,7 +93,8 @@ def summarize(rows: Sequence[Mapping], axes: Sequence[str], seed_axis: str,
             if v:
                 stats[c] = {"mean": sum(v) / len(v), "min": min(v), "max": max(v), "spread": max(v) - min(v),
                             "ci": sum(ci) / len(ci) if ci else None, "n": len(v)}
-        out.append({"labels": g["labels"], "seeds": g["seeds"], "stats": stats})
+        steps = sorted({int(x) for r in g["rows"] if (x := _float(r.get(STEPS))) is not None})
+        out.append({"labels": g["labels"], "seeds": g["seeds"], "steps": steps, "stats": stats})
     return out
 
 
@@ -181,11 +192,14 @@ def render(groups: Sequence[Mapping], within: Sequence[str] = (), columns: Seque
     comps = compare(groups, columns, within)
     bold = {(tuple(c["context"].values()), c["best"], c["column"]) for c in comps if c["beyond"]}
     keys = list(groups[0]["labels"])
-    head = [*keys, "seeds", *[column_metric(c)[1] for c in columns]]
+    steps = any(g.get("steps") for g in groups)
+    head = [*keys, "seeds", *(["steps trained"] if steps else []), *[column_metric(c)[1] for c in columns]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for g in groups:
         ctx, name = tuple(g["labels"].get(a, "") for a in within), _name(g, within)
         cells = [*g["labels"].values(), ", ".join(g["seeds"])]
+        if steps:       # a group whose seeds trained different budgets shows each (a point served short)
+            cells.append(", ".join(f"{n:,}" for n in g.get("steps") or []) or "–")
         for c in columns:
             cell = _cell(g["stats"].get(c))
             cells.append(f"**{cell}**" if (ctx, name, c) in bold else cell)
@@ -221,3 +235,109 @@ def grid_lines(rows: Sequence[Mapping], axes: Sequence[str], declared: Mapping) 
     optionally columns and focus) lays them out."""
     groups = summarize(rows, axes, declared["axis"])
     return render(groups, declared.get("within", []), declared.get("columns"), declared.get("focus", []))
+
+
+def curves(groups: Sequence[Mapping], axis: str, columns: Sequence[str] | None = None) -> dict[str, dict[str, list]]:
+    """``{column: {line: [(x, label, mean, min, max)]}}``: per metric column, one line per group of
+    the axes other than ``axis`` (their labels joined), its points along ``axis`` in order of x. x
+    is the mean of the steps the group's models trained, or the label's position on the axis when
+    no row records its steps."""
+    order = list(dict.fromkeys(g["labels"][axis] for g in groups if axis in g["labels"]))
+    have = list(dict.fromkeys(c for g in groups for c in g["stats"]))
+    out: dict[str, dict[str, list]] = {}
+    for c in (columns if columns is not None else have):
+        lines: dict[str, list] = {}
+        for g in groups:
+            if axis not in g["labels"] or c not in g["stats"]:
+                continue
+            st, lab = g["stats"][c], g["labels"][axis]
+            x = sum(g["steps"]) / len(g["steps"]) if g.get("steps") else float(order.index(lab) + 1)
+            name = "-".join(v for a, v in g["labels"].items() if a != axis) or "all"
+            lines.setdefault(name, []).append((x, lab, st["mean"], st["min"], st["max"]))
+        if lines:
+            out[c] = {n: sorted(pts) for n, pts in lines.items()}
+    return out
+
+
+def curve_png(groups: Sequence[Mapping], axis: str, columns: Sequence[str] | None = None) -> bytes | None:
+    """PNG: one panel per metric column against the steps trained (log scale), a line per group with
+    a band over the seed range; None when no column has two points on one line."""
+    data = {c: lines for c, lines in curves(groups, axis, columns).items() if any(len(p) > 1 for p in lines.values())}
+    if not data:
+        return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from party.render import PLAIN_TEXT, figure_png
+
+    names = list(dict.fromkeys(n for lines in data.values() for n in lines))
+    steps = any(g.get("steps") for g in groups)
+    cols = min(4, len(data))
+    rows = (len(data) + cols - 1) // cols
+    fig, axs = plt.subplots(rows, cols, figsize=(3.8 * cols, 3.0 * rows), squeeze=False)
+    for ax, (c, lines) in zip(axs.flat, data.items()):
+        for n, pts in lines.items():
+            colour = f"C{names.index(n) % 10}"
+            xs = [p[0] for p in pts]
+            ax.plot(xs, [p[2] for p in pts], marker="o", ms=3, color=colour, label=n)
+            ax.fill_between(xs, [p[3] for p in pts], [p[4] for p in pts], color=colour, alpha=0.18, lw=0)
+        if steps:
+            ax.set_xscale("log")
+        ticks = sorted({(p[0], p[1]) for pts in lines.values() for p in pts})
+        ax.set_xticks([t[0] for t in ticks], [f"{t[1]}\n{t[0]:,.0f}" if steps else t[1] for t in ticks], fontsize=7)
+        ax.minorticks_off()
+        ax.set_title(column_metric(c)[1], fontsize=9, **PLAIN_TEXT)
+        ax.tick_params(axis="y", labelsize=7)
+    for ax in list(axs.flat)[len(data):]:
+        ax.axis("off")
+    axs.flat[0].legend(fontsize=7, loc="best")
+    fig.supxlabel(f"{axis}: steps trained" if steps else axis, fontsize=8)
+    fig.tight_layout()
+    return figure_png(fig, dpi=80)
+
+
+def grid_report(rows: Sequence[Mapping], axes: Sequence[str], declared: Mapping, title: str) -> str:
+    """The grid's ``report.html``: its seed table (``grid_lines``) and, with ``curve`` declared,
+    the metrics against the training budget (``curve_png``)."""
+    from party.evaluation.html import report_html
+
+    png = None
+    if declared.get("curve"):
+        png = curve_png(summarize(rows, axes, declared["axis"]), declared["curve"], declared.get("columns"))
+    md = "\n".join([f"## Mean over training seeds (axis `{declared['axis']}`)", "", *grid_lines(rows, axes, declared)])
+    return report_html(md, png, [], title, charts_title=f"Metrics against {declared.get('curve')}: the mean over "
+                       "training seeds, the band from the lowest to the highest seed")
+
+
+def finished_rows(grid: str | Path, points: Mapping) -> list[dict]:
+    """The ``row`` of every done point of a grid's ``status.json`` ``points``, each with its named-side
+    rate where ``scripts/seed_table.py --side`` cached one (``<grid>/side/<point>.json``)."""
+    rows = []
+    for label, e in points.items():
+        if not isinstance(e, Mapping) or e.get("status") != "done" or not isinstance(e.get("row"), Mapping):
+            continue
+        row = dict(e["row"])
+        side = Path(grid) / "side" / f"{label}.json"
+        if side.is_file():
+            try:
+                row[SIDE] = float(next(iter(json.loads(side.read_text()).values()))["mean"])
+            except (ValueError, TypeError, KeyError, StopIteration) as err:
+                raise ValueError(f"{side}: not a named-side check of scripts/check_generator.py "
+                                 f"({type(err).__name__}: {err}); delete it to recompute") from None
+        rows.append(row)
+    return rows
+
+
+def write_grid_report(grid: str | Path, spec: Mapping, points: Mapping) -> Path | None:
+    """``<grid>/report.html`` (``grid_report``) for a spec with a ``seeds:`` entry and a finished
+    point; None (nothing written) otherwise."""
+    from party.io import write_text
+
+    rows = finished_rows(grid, points)
+    if not spec.get("seeds") or not rows:
+        return None
+    title = f"party sweep {spec.get('name', Path(grid).name)}" + (f": {spec['description']}" if spec.get("description") else "")
+    path = Path(grid) / "report.html"
+    write_text(path, grid_report(rows, list(spec["axes"]), spec["seeds"], title))
+    return path

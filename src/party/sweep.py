@@ -15,7 +15,8 @@ A grid is a YAML file (``conf/sweep/<name>.yaml`` or any path)::
                                        # mean over seeds and whether a lead beats the seed spread,
                                        # comparing the groups that share their ``within`` labels;
                                        # optional ``columns``: the metric columns shown, ``focus``:
-                                       # groups set against each other group)
+                                       # groups set against each other group, ``curve``: an axis of
+                                       # ``within`` drawn as the x of a plot in ``report.html``)
 
 ``name`` and the labels name folders (``<out_dir>/<name>/points/<label>-<label>/``), so each is
 a plain name (``party.names``).
@@ -68,7 +69,7 @@ import yaml
 from filelock import FileLock
 from omegaconf import OmegaConf
 
-from party import tracking
+from party import seeds, tracking
 from party.io import write_text
 from party.lifecycle import Busy
 from party.names import check_name
@@ -118,9 +119,14 @@ def load_sweep(name_or_path: str, conf_dir: str | Path = "conf/sweep",
             raise ValueError(f"{p}: 'seeds' must be {{axis: <an axis>, within: [<other axes>]}}, got {seeds}")
         extra = {k: seeds[k] for k in ("columns", "focus") if k in seeds}
         if not all(isinstance(v, list) and all(isinstance(x, str) for x in v) for v in extra.values()) or \
-                set(seeds) - {"axis", "within", "columns", "focus"}:
-            raise ValueError(f"{p}: 'seeds' takes axis, within, columns (metric columns) and focus (group "
-                             f"names), the last two lists of strings; got {seeds}")
+                set(seeds) - {"axis", "within", "columns", "focus", "curve"}:
+            raise ValueError(f"{p}: 'seeds' takes axis, within, columns (metric columns), focus (group "
+                             f"names), the last two lists of strings, and curve (an axis); got {seeds}")
+        if "curve" in seeds:
+            if seeds["curve"] not in within:
+                raise ValueError(f"{p}: seeds.curve must be one of seeds.within ({within}): the groups are "
+                                 f"compared at each point of the curve; got {seeds['curve']!r}")
+            extra["curve"] = seeds["curve"]
         spec["seeds"] = {"axis": axis, "within": within, **extra}
     spec["path"] = str(p)
     return spec
@@ -423,8 +429,11 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
         md, csv_text = tables(rows, spec, columns, notes)
         write_text(out / "table.md", md)
         write_text(out / "table.csv", csv_text)
+        report = seeds.write_grid_report(out, spec, status["points"])
     tracking.log_file(out / "table.md")
     tracking.log_file(out / "table.csv")
+    if report is not None:
+        tracking.log_file(report)
     tracking.log_file(out / "status.json")
     if mode == "point":
         if only in failed:

@@ -176,11 +176,12 @@ def legend_html(animated: bool = True) -> str:
     return f"<div class='legend'>{anim}<p><b>Tables and charts</b>: {inline(TABLE_LEGEND)}</p></div>"
 
 
-def report_html(tables_md: str, charts_png: bytes | None, gifs: Sequence[tuple[str, bytes]], title: str) -> str:
+def report_html(tables_md: str, charts_png: bytes | None, gifs: Sequence[tuple[str, bytes]], title: str,
+                charts_title: str = "Metrics with 95% CIs") -> str:
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>", f"<title>{html.escape(title)}</title>",
              _STYLE, "</head><body>", f"<h1>{html.escape(title)}</h1>", legend_html(bool(gifs))]
     if charts_png is not None:
-        parts += ["<h2>Metrics with 95% CIs</h2>",
+        parts += [f"<h2>{html.escape(charts_title)}</h2>",
                   f"<figure><img alt='metrics' src='{_data_uri(charts_png, 'image/png')}'></figure>"]
     if gifs:
         parts += ["<h2>Samples: ground truth beside every generated run</h2>", "<div class='grid'>"]
