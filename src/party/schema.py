@@ -357,7 +357,7 @@ class Quantizer:
 
 @dataclass
 class VQModel:
-    family: str = MISSING                   # temporal_vq | a dotted model-class path
+    family: str = MISSING                   # temporal_vq | vq | rvq | a dotted model-class path
     window: int = MISSING
     codebook_size: int = MISSING
     code_dim: int = MISSING
@@ -467,6 +467,17 @@ TokenizerOverride = _override_of(VQModel, "TokenizerOverride",
 
 
 @dataclass
+class RVQ:                                  # family rvq (party.tokenizers.rvq)
+    levels: int = _COUNT()
+    quantizer_dropout: float = _SOME()
+
+
+@dataclass
+class VQFamilies:                           # vqvae.families.<family>: joins the model config of that family's streams
+    rvq: RVQ = _group(RVQ)
+
+
+@dataclass
 class Vqvae:
     stream: str = MISSING
     streams: List[str] = MISSING
@@ -475,6 +486,7 @@ class Vqvae:
     tokens_dir: str = MISSING
     resume_dir: str = MISSING
     model: VQModel = _group(VQModel)
+    families: VQFamilies = _group(VQFamilies)
     tokenizers: Dict[str, TokenizerOverride] = MISSING   # type: ignore[valid-type]
     loss: VQLoss = _group(VQLoss)
     diagnostics: VQDiagnostics = _group(VQDiagnostics)

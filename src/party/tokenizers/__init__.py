@@ -5,7 +5,8 @@
     codes = TokenStore.open("data/tokens/holistic").get("000021")
     feats = tok.detokenize(codes)                            # raw (n*w, D) features
 
-The method family is ``vqvae.model.family`` (``temporal_vq``; ``build_tokenizer``,
+The method family is ``vqvae.model.family`` (``temporal_vq``; ``vq`` and ``rvq``, the
+convolutional VQ-VAE with one or ``rvq.levels`` residual codebooks; ``build_tokenizer``,
 ``register_family``); ``TokenizerProtocol`` (``party.tokenizers.protocol.Tokenizer``)
 is what extraction and evaluation use of any family.
 """
@@ -14,10 +15,11 @@ from party.tokenizers.protocol import Tokenizer as TokenizerProtocol
 from party.tokenizers.quantizer import EMAQuantizer
 from party.tokenizers.temporal import GlobalTemporalEnhancement, LocalTemporalEnhancement
 from party.tokenizers.tokens import TokenStore, write_token_store
-from party.tokenizers.vqvae import (FAMILIES, VQVAE, Tokenizer, build_model, build_tokenizer,
+from party.tokenizers.vqvae import (FAMILIES, VQVAE, Tokenizer, bits_per_frame, build_model, build_tokenizer,
                                     family_class, load_tokenizer, register_family, save_tokenizer)
+from party.tokenizers import rvq  # noqa: E402,F401  (registers the families vq and rvq)
 
 __all__ = ["EMAQuantizer", "GlobalTemporalEnhancement", "LocalTemporalEnhancement", "TokenStore",
            "write_token_store", "VQVAE", "Tokenizer", "load_tokenizer", "save_tokenizer",
-           "FAMILIES", "build_model", "build_tokenizer", "family_class", "register_family",
+           "FAMILIES", "bits_per_frame", "build_model", "build_tokenizer", "family_class", "register_family",
            "Codec", "TokenizerModel", "TokenizerProtocol"]

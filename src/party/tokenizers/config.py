@@ -3,6 +3,8 @@
 ``vqvae.model`` holds what every tokenizer shares; ``vqvae.tokenizers.<stream>``
 overrides any of those keys for one stream (window, codebook_size, code_dim, ...)
 and may carry a ``train`` block that overrides ``vqvae.train`` for that stream.
+``vqvae.families.<family>`` holds what only one family reads (``rvq``: levels, dropout): it
+joins the model config (as ``model.<family>``) of the streams of that family alone.
 """
 from __future__ import annotations
 
@@ -26,7 +28,11 @@ def stream_config(vq_cfg, stream: str) -> dict:
         raise KeyError(f"vqvae.tokenizers has no entry {stream!r} (have {sorted(toks)})")
     over = dict(toks[stream] or {})
     train_over = over.pop("train", {}) or {}
-    return {"model": _merge(vq["model"], over), "train": _merge(vq["train"], train_over),
+    model = _merge(vq["model"], over)
+    own = (vq.get("families") or {}).get(str(model["family"]))
+    if own is not None:            # vqvae.families.<family>: only that family's streams carry it
+        model[str(model["family"])] = dict(own)
+    return {"model": model, "train": _merge(vq["train"], train_over),
             "loss": dict(vq["loss"]), "optim": dict(vq["optim"])}
 
 

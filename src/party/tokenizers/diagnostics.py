@@ -27,9 +27,12 @@ def code_spread(model, run_length: int) -> float:
     """Mean over channels of the std across codes of ``decode([k] * run_length)`` (time-averaged)."""
     was = model.training
     model.eval()
-    K = model.quantizer.n_codes
-    dev = model.quantizer.codebook.device
-    dec = model.decode(torch.arange(K, device=dev)[:, None].repeat(1, run_length))   # (K, n*w, D)
+    K, Q = int(model.codebook_size), int(model.levels)
+    dev = next(model.parameters()).device
+    codes = torch.arange(K, device=dev)[:, None].repeat(1, run_length)          # (K, n)
+    if Q > 1:                     # several levels: code k at every level (a row of one code index)
+        codes = codes[..., None].repeat(1, 1, Q)
+    dec = model.decode(codes)                                                    # (K, n*w, D)
     model.train(was)
     return float(dec.mean(1).std(0).mean())
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import lightning as L
 import torch
 
+from party.tokenizers.quantizer import EMAQuantizer
 from party.tokenizers.vqvae import Tokenizer
 from party.training import adam, step_lr_factor
 
@@ -44,6 +45,11 @@ def lr_factor(step: int, optim: dict) -> float:
     f = step_lr_factor(step, optim)
     warm = int(optim["warmup_steps"] or 0)
     return f * min(1.0, (step + 1) / warm) if warm > 0 else f
+
+
+def resets_total(model: torch.nn.Module) -> int:
+    """Dead-code resets so far over every codebook of a tokenizer network (any family)."""
+    return int(sum(int(m.resets_total) for m in model.modules() if isinstance(m, EMAQuantizer)))
 
 
 class VQVAELit(L.LightningModule):
@@ -111,20 +117,20 @@ class VQVAELit(L.LightningModule):
         x = batch["x"] if isinstance(batch, dict) else batch
         out = self.model(x)
         ls = self._losses(out)
-        q = self.model.quantizer
+        usage = out["usage"] if isinstance(out["usage"], (list, tuple)) else [out["usage"]]
         logged = {"train/loss": ls["loss"], "train/l_rec": ls["l_rec"], "train/l_app": ls["l_app"],
                   "train/l_feat": ls["l_feat"], "train/l_vel": ls["l_vel"], "train/perplexity": out["perplexity"],
-                  "train/codes_used": float(out["usage"]), "train/resets": float(out["resets"]),
-                  "train/resets_total": float(q.resets_total)}
+                  "train/codes_used": float(sum(usage)) / len(usage), "train/resets": float(out["resets"]),
+                  "train/resets_total": float(resets_total(self.model))}
         self.log_dict({k: v for k, v in logged.items() if v is not None}, prog_bar=False, batch_size=len(x))
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=len(x))
         return ls["loss"]
 
     # -------------------------------------------------------------- validation
     def on_validation_epoch_start(self) -> None:
-        K = self.model.quantizer.n_codes
+        K, Q = int(self.model.codebook_size), int(self.model.levels)
         self._val = {"err": 0.0, "err_g": 0.0, "rec": 0.0, "frames": 0.0, "err_mean": 0.0,
-                     "hist": torch.zeros(K, dtype=torch.float64, device=self.device)}
+                     "hist": torch.zeros(Q, K, dtype=torch.float64, device=self.device)}
         self.val_outputs = {}
 
     def validation_step(self, batch, batch_idx):
@@ -149,7 +155,9 @@ class VQVAELit(L.LightningModule):
         v["rec"] += float(((jh - jg).abs().mean((-1, -2)) * m).sum())
         v["frames"] += float(m.sum())
         idx = out["idx"][out["node_mask"]]
-        v["hist"] += torch.bincount(idx, minlength=len(v["hist"])).to(v["hist"])
+        idx = idx[:, None] if idx.dim() == 1 else idx                  # (N, Q): one histogram per level
+        K = v["hist"].shape[1]
+        v["hist"] += torch.stack([torch.bincount(idx[:, q], minlength=K) for q in range(idx.shape[1])]).to(v["hist"])
         if self.keep_outputs:
             for k, key in enumerate(batch["keys"]):
                 n = int(out["node_mask"][k].sum())
@@ -164,14 +172,19 @@ class VQVAELit(L.LightningModule):
                                device=self.device), reduce_op="sum")
         hist = red(v["hist"], reduce_op="sum")
         frames = max(float(tot[3]), 1.0)
-        p = hist / hist.sum().clamp(min=1)
+        p = hist / hist.sum(-1, keepdim=True).clamp(min=1)
+        ppl = torch.exp(-(p * torch.log(p + 1e-12)).sum(-1))              # per level
+        used = (hist > 0).double().mean(-1)
         res = {"val/mpjpe_mm": float(tot[0]) / frames * self.unit_scale,
                "val/mpjpe_global_mm": float(tot[1]) / frames * self.unit_scale,
                "val/mpjpe_meanpose_mm": float(tot[4]) / frames * self.unit_scale,
                "val/l_rec": float(tot[2]) / frames,
-               "val/perplexity": float(torch.exp(-(p * torch.log(p + 1e-12)).sum())),
-               "val/code_usage": float((hist > 0).float().mean()),
+               "val/perplexity": float(ppl.mean()),          # the mean over code levels (one level: its own)
+               "val/code_usage": float(used.mean()),
                "val/frames": float(tot[3])}
+        if len(hist) > 1:                                   # each level's codebook (SPEC: usage >= 50% per level)
+            for q in range(len(hist)):
+                res[f"val/perplexity_l{q}"], res[f"val/code_usage_l{q}"] = float(ppl[q]), float(used[q])
         self.val_results = res
         self.log_dict({k: float(v) for k, v in res.items()}, sync_dist=False)
 

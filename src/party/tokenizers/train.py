@@ -31,8 +31,8 @@ from party.tokenizers import diagnostics
 from party.tokenizers.config import crop_length, resume_key, stream_config
 from party.data.context import load_stream_data
 from party.tokenizers.data import BucketDataset, bucket_loader, eval_sequences, train_loader
-from party.tokenizers.lit import VQVAELit
-from party.tokenizers.vqvae import Tokenizer, build_tokenizer, save_tokenizer
+from party.tokenizers.lit import VQVAELit, resets_total
+from party.tokenizers.vqvae import Tokenizer, bits_per_frame, build_tokenizer, save_tokenizer
 from party.training import (AtomicCheckpoint, TrainingSession, build_trainer, count_params, data_identity,
                             precision_identity, start_training, trainer_kwargs)
 
@@ -101,8 +101,8 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
         diag = diagnostics.verdict(lit.val_results, spread, diagnostics.data_spread(val_seqs),
                                    dict(cfg.vqvae.diagnostics))
         metrics = {**lit.val_results, "step": int(trainer.global_step), "n_params": n_params,
-                   "window": model.window, "codebook_size": model.quantizer.n_codes,
-                   "resets_total": int(model.quantizer.resets_total), "precision": precision,
+                   "window": model.window, "codebook_size": int(model.codebook_size), "levels": int(model.levels),
+                   "bits_per_frame": bits_per_frame(model), "resets_total": resets_total(model), "precision": precision,
                    "train_seconds_this_run": round(time.time() - t0, 1)}
         metrics["diagnostics"] = diag
         run.log_metrics({f"final/{k.split('/')[-1]}": v for k, v in lit.val_results.items()},

@@ -144,6 +144,15 @@ class VQVAE(nn.Module):
                 "perplexity": out["perplexity"], "resets": out["resets"], "usage": out["usage"]}
 
 
+def bits_per_frame(model) -> float:
+    """Bits a tokenizer network spends per motion frame: Q levels of log2(K) bits per ``window``
+    frames (VQ-512 at x4: 2.25; RVQ 512x2 at x4: 4.5; H2VQ with two coarse and one fine code per 4
+    frames: 6.75). Reconstruction tables print it beside MPJPE: quantizers compared at unequal bit
+    rates are not compared on equal terms (SPEC-humantomato §2.4)."""
+    import math
+    return int(model.levels) * math.log2(int(model.codebook_size)) / int(model.window)
+
+
 # ====================================================================== families
 FAMILIES: dict[str, type[nn.Module]] = {"temporal_vq": VQVAE}
 LEGACY_FAMILY = "temporal_vq"   # the family of a model.pt that records none
