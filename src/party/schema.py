@@ -135,6 +135,13 @@ class Part:
 
 
 @dataclass
+class ChannelGroup:                         # a disjoint group of the feature vector (party.motion.parts.group_index)
+    joints: List[int] = MISSING
+    root: bool = False                      # the root data (4 channels) and joint 0's velocity
+    contacts: List[str] = field(default_factory=list)   # left | right: that foot's contact channels
+
+
+@dataclass
 class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
     parts: Dict[str, Part] = MISSING
     streams: List[str] = MISSING            # generation streams, in order
@@ -142,6 +149,8 @@ class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
     coherence: Dict[str, List[int]] = MISSING
     part_tokenizers: List[str] = MISSING    # each body part alone, root first (ParCo-like methods' streams)
     torso: List[int] = MISSING
+    # disjoint channel groups that cover the vector once (group tables: H2VQ's coarse / fine groups)
+    groups: Dict[str, Dict[str, ChannelGroup]] = field(default_factory=dict)
 
 
 @dataclass
@@ -473,8 +482,25 @@ class RVQ:                                  # family rvq (party.tokenizers.rvq)
 
 
 @dataclass
+class H2VQRates:
+    coarse: int = _COUNT()
+    fine: int = _COUNT()
+
+
+@dataclass
+class H2VQ:                                 # family h2vq (party.methods.humantomato.h2vq)
+    groups: str = MISSING                   # a table of dataset.parts.groups
+    table: Dict[str, ChannelGroup] = MISSING   # that table (interpolated)
+    fine: str = MISSING                     # the group quantized first
+    rates: H2VQRates = _group(H2VQRates)
+    transform: str = MISSING
+    fusion_kernel: int = _COUNT()
+
+
+@dataclass
 class VQFamilies:                           # vqvae.families.<family>: joins the model config of that family's streams
     rvq: RVQ = _group(RVQ)
+    h2vq: H2VQ = _group(H2VQ)
 
 
 @dataclass

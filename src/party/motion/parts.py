@@ -178,3 +178,57 @@ class PartLayout:
         full = full.index_copy(full.dim() - 1, idx, stream_feats)
         joints = recover_from_ric(full, self.n_joints)
         return joints[..., self.stream_joints(stream), :]
+
+
+def group_index(n_joints: int, groups: Mapping[str, Mapping]) -> dict[str, np.ndarray]:
+    """Channel indices of disjoint groups of the feature vector (``dataset.parts.groups.<table>``):
+    a group is its joints' channels (ric + rot6d + local velocity), with ``root`` the root data
+    and joint 0's velocity, and ``contacts`` (left / right) those feet's contact channels. The
+    groups must cover every channel exactly once (a ValueError names what overlaps or is left out),
+    so ``merge_groups(split_groups(x))`` is ``x`` bit for bit."""
+    sl = feature_slices(n_joints)
+    feet = {"left": [sl.contacts.start, sl.contacts.start + 1], "right": [sl.contacts.start + 2, sl.contacts.start + 3]}
+    out: dict[str, np.ndarray] = {}
+    for name, g in groups.items():
+        idx = list(range(sl.root.start, sl.root.stop)) + _joint_feature_idx(0, n_joints) if g.get("root") else []
+        for j in g["joints"]:
+            if not 0 < int(j) < n_joints:
+                raise ValueError(f"group {name!r}: joint {j} is not a joint of a {n_joints}-joint skeleton "
+                                 "(1..n-1; joint 0 is the root: root: true)")
+            idx += _joint_feature_idx(int(j), n_joints)
+        for side in g.get("contacts") or []:
+            if side not in feet:
+                raise ValueError(f"group {name!r}: contacts {side!r} must be left or right")
+            idx += feet[side]
+        out[name] = np.array(idx, dtype=np.int64)
+    allidx = np.concatenate(list(out.values())) if out else np.zeros(0, np.int64)
+    dim = 12 * n_joints - 1
+    seen, counts = np.unique(allidx, return_counts=True)
+    twice = seen[counts > 1]
+    missing = np.setdiff1d(np.arange(dim), allidx)
+    if len(twice) or len(missing) or len(allidx) != dim:
+        raise ValueError(f"groups {list(out)} must cover the {dim} channels once each: {len(twice)} channels in two "
+                         f"groups (first {twice[:5].tolist()}), {len(missing)} in none (first {missing[:5].tolist()})")
+    return out
+
+
+def split_groups(x, index: Mapping[str, np.ndarray]) -> dict:
+    """The groups' slices of full vectors (..., D)."""
+    if isinstance(x, torch.Tensor):
+        return {n: x[..., torch.as_tensor(i, device=x.device)] for n, i in index.items()}
+    return {n: x[..., i] for n, i in index.items()}
+
+
+def merge_groups(pieces: Mapping, index: Mapping[str, np.ndarray]):
+    """Full vectors from every group's slice (the exact inverse of ``split_groups``)."""
+    ref = next(iter(pieces.values()))
+    dim = sum(len(i) for i in index.values())
+    if isinstance(ref, torch.Tensor):
+        out = ref.new_empty(*ref.shape[:-1], dim)
+        for n, i in index.items():
+            out[..., torch.as_tensor(i, device=ref.device)] = pieces[n]
+        return out
+    out = np.empty((*ref.shape[:-1], dim), dtype=ref.dtype)
+    for n, i in index.items():
+        out[..., i] = pieces[n]
+    return out

@@ -36,7 +36,7 @@ from party.stage import stage
 from party.sweep import expand, load_sweep, run_grid
 from party.tokenizers.train import train_tokenizer
 
-COLUMNS = ["point", "window", "lte", "gte", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
+COLUMNS = ["point", "family", "window", "lte", "gte", "levels", "bits_per_frame", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
            "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "status"]
 _FID_SETUP = ("eval", "evaluator", "dataset", "paths")
 
@@ -58,7 +58,9 @@ def _fid(scorers: dict, pcfg, stream: str, tok_dir: Path) -> dict:
 
 
 def _notes(spec: dict) -> str:
-    return ("MPJPE: validation set, mm, root-aligned per frame (global: without alignment); "
+    return ("bits_per_frame: code levels x log2(codebook size) / frames per token: quantizers at unequal "
+            "rates are not compared on equal terms.\n"
+            "MPJPE: validation set, mm, root-aligned per frame (global: without alignment); "
             "mpjpe_ratio: over the mean-pose baseline's (status `collapsed`: not clearly below it).\n"
             "Reconstruction FID: the evaluate protocol on `eval.split` with the stream's evaluator "
             "(empty: no evaluator trained).\n\n"
@@ -83,9 +85,10 @@ def run(cfg, run_) -> list[dict]:
         m = train_tokenizer(pcfg, stream, out / "points" / p["label"], prun)
         mc = pcfg.vqvae.tokenizers[stream]
         model = pcfg.vqvae.model
-        return {"window": int(mc.get("window", model.window)),
+        return {"family": str(mc.get("family", model.family)), "window": int(mc.get("window", model.window)),
                 "lte": bool(mc.get("lte", model.lte).enabled),
                 "gte": bool(mc.get("gte", model.gte).enabled),
+                "levels": int(m["levels"]), "bits_per_frame": round(float(m["bits_per_frame"]), 3),
                 "params": int(m["n_params"]),
                 "mpjpe_mm": round(m["val/mpjpe_mm"], 2),
                 "mpjpe_global_mm": round(m["val/mpjpe_global_mm"], 2),

@@ -167,8 +167,16 @@ def register_family(name: str, cls: type[nn.Module]) -> None:
     FAMILIES[name] = cls
 
 
+#: modules whose import registers more built-in families (imported on the first unknown name)
+BUILTIN_MODULES = ("party.methods.humantomato.h2vq",)
+
+
 def family_class(name: str) -> type[nn.Module]:
     """The network class of a family: a registered name, or ``package.module.Class``."""
+    if name not in FAMILIES and "." not in name:
+        import importlib
+        for mod in BUILTIN_MODULES:
+            importlib.import_module(mod)
     if name in FAMILIES:
         return FAMILIES[name]
     if "." not in name:

@@ -1,0 +1,128 @@
+"""H²VQ (party.methods.humantomato.h2vq) and the channel groups it reads (SPEC-humantomato §8 items 1-3)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from party.motion.parts import group_index, merge_groups, split_groups
+from party.tokenizers import bits_per_frame, build_model, family_class
+
+TABLES = yaml.safe_load(open("conf/dataset/parts/t2m.yaml"))["groups"]
+
+
+def cfg(rates=(2, 4), table="core_arms", **over):
+    return {"family": "h2vq", "window": 4, "codebook_size": 16, "code_dim": 8, "width": 16, "depth": 1,
+            "dilation_growth": 3, "tail": "crop", "baseline_pool": "conv",
+            "quantizer": {"decay": 0.99, "reset_threshold": 1.0},
+            "h2vq": {"groups": table, "table": TABLES[table], "fine": "arms",
+                     "rates": {"coarse": rates[0], "fine": rates[1]}, "transform": "linear", "fusion_kernel": 3},
+            **over}
+
+
+def test_groups_partition_the_vector_exactly():
+    idx = group_index(22, TABLES["core_arms"])
+    assert {k: len(v) for k, v in idx.items()} == {"core": 167, "arms": 96}
+    assert sorted(np.concatenate(list(idx.values())).tolist()) == list(range(263))
+    three = group_index(22, TABLES["core3"])
+    assert {k: len(v) for k, v in three.items()} == {"torso": 67, "legs": 100, "arms": 96}
+    x = np.random.default_rng(0).standard_normal((5, 263)).astype(np.float32)
+    for table in (idx, three):
+        assert np.array_equal(merge_groups(split_groups(x, table), table), x)
+        t = torch.as_tensor(x)
+        assert torch.equal(merge_groups(split_groups(t, table), table), t)
+    with pytest.raises(ValueError, match="channels in two groups"):
+        group_index(22, {"a": {"joints": [13]}, "b": {"joints": [13], "root": True}})
+    with pytest.raises(ValueError, match="in none"):
+        group_index(22, {"a": {"joints": [13], "root": True}})
+    with pytest.raises(ValueError, match="joint 22"):
+        group_index(22, {"a": {"joints": [22]}})
+
+
+def trained_model(rates=(2, 4), seed=0):
+    torch.manual_seed(seed)
+    m = build_model(263, cfg(rates))
+    m.train()
+    m(torch.randn(4, 32, 263))                      # initialises both codebooks
+    return m.eval()
+
+
+def test_code_layout_exact_decode_and_bits():
+    m = trained_model()
+    assert family_class("h2vq") is type(m) and m.levels == 3 and m.window == 4
+    x = torch.randn(3, 24, 263)
+    mask = torch.ones(3, 24, dtype=torch.bool)
+    mask[2, 10:] = False                            # two whole rows of 4 frames
+    codes, rows = m.encode(x, mask)
+    assert codes.shape == (3, 6, 3) and (codes[2, 2:] == -1).all() and (codes[2, :2] >= 0).all()
+    out = m(x)
+    assert torch.equal(out["idx"], m.encode(x)[0])
+    assert torch.equal(out["recon"], m.decode(out["idx"]).float())     # decode(encode(x)) = the evaluated recon
+    assert out["recon"].shape == (3, 24, 263)
+    # row s = [core_2s, core_2s+1, arms_s]: the coarse codes are the coarse quantizer's at rate 2
+    zc = m._coarse_input(m.q_fine.dequantize(codes[:1, :, 2]), m.enc_coarse(m.group(x[:1], "core")))[0]
+    assert torch.equal(codes[0, :, :2].reshape(-1), m.q_coarse.nearest(zc))
+    assert bits_per_frame(m) == pytest.approx(3 * math.log2(16) / 4)    # 3 codes of log2 K bits per 4 frames
+    eq = trained_model((4, 4))
+    assert eq.levels == 2 and eq.encode(x)[0].shape == (3, 6, 2)
+    assert bits_per_frame(build_model(263, cfg((4, 4), codebook_size=512))) == pytest.approx(4.5)
+    assert bits_per_frame(build_model(263, cfg(codebook_size=512))) == pytest.approx(6.75)
+
+
+def test_hierarchy_wiring():
+    """The fine group is encoded and quantized first and alone: core channels do not move its codes;
+    its codes do move the core's pre-quantization features; the core commitment loss reaches the
+    Transform, the fusion conv and the arms encoder."""
+    m = trained_model()
+    x = torch.randn(2, 32, 263)
+    core = torch.as_tensor(group_index(22, TABLES["core_arms"])["core"])
+    y = x.clone()
+    y[..., core] += torch.randn(2, 32, len(core))
+    a, b = m.encode(x)[0], m.encode(y)[0]
+    assert torch.equal(a[..., 2], b[..., 2]) and not torch.equal(a[..., :2], b[..., :2])
+    zc = m.enc_coarse(m.group(x, "core"))
+    h1 = m._coarse_input(m.q_fine.dequantize(a[..., 2]), zc)
+    h2 = m._coarse_input(m.q_fine.dequantize((a[..., 2] + 1) % 16), zc)
+    assert (h1 - h2).abs().max() > 1e-4
+    m.train()
+    out = m(x)
+    m.zero_grad()
+    out["loss_app_coarse"].backward()
+    for mod in (m.transform, m.fuse, m.enc_fine):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters()), mod
+
+
+def test_h2vq_refuses_what_it_cannot_read():
+    with pytest.raises(ValueError, match="whole HumanML3D-style vector"):
+        build_model(96, cfg())
+    with pytest.raises(ValueError, match="two groups"):
+        build_model(263, cfg(table="core3"))
+    with pytest.raises(ValueError, match="multiple of the coarse"):
+        build_model(263, cfg((4, 2)))
+    with pytest.raises(ValueError, match=r"vqvae\.families\.h2vq"):
+        build_model(263, {k: v for k, v in cfg().items() if k != "h2vq"})
+
+
+def test_h2vq_trains_and_extracts(tiny_prepared, tmp_path):
+    """train_vqvae with family h2vq on the whole-body stream: per-level health, bits per frame, a (N, 3)
+    token store whose rows decode back to what validation saw, a model.pt that loads as h2vq."""
+    import json
+
+    from party.stages import extract_tokens
+    from party.tokenizers import TokenStore, load_tokenizer
+    from party.tokenizers.train import train_tokenizer
+    from tok_helpers import tiny_cfg
+
+    c = tiny_cfg(tmp_path, tiny_prepared, **{"vqvae.tokenizers.holistic.family": "h2vq",
+                                             "vqvae.tokenizers.holistic.window": 4, "vqvae.streams": "[holistic]"})
+    train_tokenizer(c, "holistic", tmp_path / "tokenizers/holistic")
+    m = json.loads((tmp_path / "tokenizers/holistic/metrics.json").read_text())
+    assert m["levels"] == 3 and m["bits_per_frame"] == pytest.approx(3 * math.log2(16) / 4)
+    assert {"val/code_usage_l0", "val/code_usage_l2"} <= set(m)
+    tok = load_tokenizer(tmp_path / "tokenizers/holistic")
+    assert tok.family == "h2vq" and tok.levels == 3
+    extract_tokens.run(c)
+    store = TokenStore.open(tmp_path / "tokens/holistic")
+    assert store.levels == 3 and store.meta["family"] == "h2vq"
+    assert store.codes.shape[1] == 3 and store.codes.min() >= 0
