@@ -83,6 +83,56 @@ def r_precision(text_emb, motion_emb, batch_size: int = 32, top_k: int = 3,
     return np.array([(ranks < k).mean() for k in range(1, top_k + 1)])
 
 
+def retrieval_ranks(text_emb, motion_emb, direction: str = "m2t", batch_size: int | None = None,
+                    order: np.ndarray | None = None, rng: np.random.Generator | None = None,
+                    text_sim=None, threshold: float = 0.9) -> np.ndarray:
+    """Rank (0 = best) of each query's match by cosine similarity: ``m2t`` a motion's caption among
+    the texts, ``t2m`` a caption's motion among the motions (HumanTOMATO App. D.2; TMR).
+
+    ``batch_size`` None: among the whole set (protocols A / B); B: within shuffled batches of B
+    (``order`` or a permutation from ``rng``; the remainder dropped), protocols C (256) and D (32).
+    ``text_sim`` (N, N): the captions' sentence similarities (protocol B): every candidate whose
+    caption is at least ``threshold`` similar to the query's counts as a match, and the rank is that
+    of the best-placed one. Cosine ranking of L2-normalised rows, ties broken by position (as
+    ``matching_ranks``, whose Euclidean ranking of unit vectors is the same order)."""
+    if direction not in ("m2t", "t2m"):
+        raise ValueError(f"retrieval direction must be m2t or t2m, got {direction!r}")
+    t, m = _t(text_emb), _t(motion_emb)
+    if t.shape != m.shape:
+        raise ValueError(f"text and motion embeddings differ in shape: {tuple(t.shape)} vs {tuple(m.shape)}")
+    t = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    m = m / m.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    q, c = (m, t) if direction == "m2t" else (t, m)
+    n = len(q)
+    if order is None:
+        order = rng.permutation(n) if rng is not None else np.arange(n)
+    order = np.asarray(order)
+    if batch_size is None:
+        batch_size = n
+        order = order[:n]
+    if n < batch_size:
+        raise ValueError(f"retrieval within sets of {batch_size} needs at least {batch_size} samples, got {n}")
+    nb = len(order) // batch_size
+    idx = torch.as_tensor(order[: nb * batch_size]).reshape(nb, batch_size)
+    score = q[idx] @ c[idx].transpose(-1, -2)                            # (nb, B, B): query i vs candidate j
+    if text_sim is None:
+        match = torch.eye(batch_size, dtype=torch.bool)[None].expand(nb, -1, -1)
+    else:
+        sim = _t(text_sim)
+        match = (sim[idx[..., :, None], idx[..., None, :]] >= threshold) | torch.eye(batch_size, dtype=torch.bool)
+    best = score.masked_fill(~match, float("-inf")).max(-1, keepdim=True)
+    first = torch.where(match & (score == best.values), torch.arange(batch_size), batch_size).min(-1, keepdim=True).values
+    j = torch.arange(batch_size)
+    rank = ((score > best.values) & ~match).sum(-1) + ((score == best.values) & ~match & (j < first)).sum(-1)
+    return rank.reshape(-1).numpy()
+
+
+def recall_at_k(ranks: np.ndarray, ks=(1, 2, 3, 5, 10)) -> dict[int, float]:
+    """Recall@K: the share of queries whose match ranks under K."""
+    ranks = np.asarray(ranks)
+    return {int(k): float((ranks < k).mean()) for k in ks}
+
+
 def matching_score(text_emb, motion_emb) -> float:
     """MM-Dist: mean Euclidean distance between each text and its motion."""
     return float(torch.linalg.vector_norm(_t(text_emb) - _t(motion_emb), dim=-1).mean())
