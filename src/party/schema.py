@@ -869,6 +869,66 @@ class Preemption:
 
 
 @dataclass
+class TMAModel:
+    latent_dim: int = _COUNT()
+    layers: int = _COUNT()
+    heads: int = _COUNT()
+    ff: int = _COUNT()
+    dropout: float = _SOME()
+    vae: bool = MISSING
+
+
+@dataclass
+class TMALoss:
+    lambda_kl: float = _SOME()
+    lambda_e: float = _SOME()
+    lambda_nce: float = _SOME()
+    tau: float = _POSITIVE()
+    filter_threshold: float = MISSING
+
+
+@dataclass
+class TMAOptim:
+    lr: float = _POSITIVE()
+    betas: List[float] = MISSING
+    weight_decay: float = _SOME()
+
+
+@dataclass
+class TMATrain:
+    batch_size: int = _COUNT()
+    max_steps: int = _COUNT()
+    val_every: int = _COUNT()
+    max_len: int = _COUNT()
+    unit_len: int = _COUNT()
+    threads: Optional[int] = _COUNT()
+
+
+@dataclass
+class TMAEval:
+    ks: List[int] = MISSING
+    set_sizes: Dict[str, int] = MISSING
+    b_threshold: float = MISSING
+    seed: int = MISSING
+
+
+@dataclass
+class Tma:                                   # conf/tma (party.methods.humantomato.tma_train)
+    which: str = MISSING
+    eval_model: str = MISSING
+    models: Dict[str, int] = MISSING
+    out_dir: str = MISSING
+    text_backbone: str = MISSING
+    max_text_tokens: int = _COUNT()
+    model: TMAModel = _group(TMAModel)
+    loss: TMALoss = _group(TMALoss)
+    optim: TMAOptim = _group(TMAOptim)
+    train: TMATrain = _group(TMATrain)
+    eval: TMAEval = _group(TMAEval)
+    trainer: StageTrainer = _group(StageTrainer)
+
+
+@dataclass
 class Config:
     seed: int = MISSING
     progress: bool = MISSING
@@ -881,6 +941,7 @@ class Config:
     part_texts: PartTexts = _group(PartTexts)
     vqvae: Vqvae = _group(Vqvae)
     evaluator: Evaluator = _group(Evaluator)
+    tma: Tma = _group(Tma)
     eval: Eval = _group(Eval)
     generator: Generator = _group(Generator)
     repro: Repro = _group(Repro)
@@ -890,7 +951,7 @@ class Config:
 #: the config groups of conf/ and their schema
 SCHEMA_GROUPS: dict[str, type] = {"dataset": Dataset, "tracking": Tracking, "trainer": Trainer,
                                   "text": Text, "part_texts": PartTexts, "vqvae": Vqvae,
-                                  "evaluator": Evaluator, "eval": Eval, "generator": Generator}
+                                  "evaluator": Evaluator, "tma": Tma, "eval": Eval, "generator": Generator}
 
 
 # --------------------------------------------------------------------------- validation
@@ -1111,7 +1172,7 @@ NAME_KEYS: tuple[tuple[str, str], ...] = (
     ("dataset.parts.stream_parts", "keys"), ("dataset.parts.stream_parts", "value items"),
     ("dataset.parts.coherence", "keys"), ("dataset.parts.part_tokenizers", "items"),
     ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"), ("vqvae.tokenizers", "keys"),
-    ("evaluator.stream", "value"), ("evaluator.streams", "items"),
+    ("evaluator.stream", "value"), ("evaluator.streams", "items"), ("tma.which", "value"), ("tma.models", "keys"),
     ("eval.sources.tokenizers", "items"),
     ("generator.method", "value"), ("generator.methods", "keys"), ("generator.streams", "items"),
 )
