@@ -72,15 +72,17 @@ def save_weights(path: str | Path, fmt: str, spec: Mapping, meta: Mapping, state
     write_bytes(path, buf.getvalue())
 
 
-def load_weights(path: str | Path, fmt: str, map_location="cpu") -> dict:
-    """The dict ``save_weights`` wrote (``model.pt`` or its folder), its format checked."""
+def load_weights(path: str | Path, fmt: str, map_location="cpu", produced_by: str = "party train_generator",
+                 what: str = "generator") -> dict:
+    """The dict ``save_weights`` wrote (``model.pt`` or its folder), its format checked; a wrong file
+    names ``what`` it should be and the command (``produced_by``) that writes one."""
     path = Path(path)
     if path.is_dir():
         path = path / "model.pt"
-    obj = load_torch(path, "party train_generator", "generator", map_location)
+    obj = load_torch(path, produced_by, what, map_location)
     if not isinstance(obj, dict) or obj.get("format") != fmt:
-        raise ValueError(f"{path}: not a party generator (format {obj.get('format') if isinstance(obj, dict) else '?'}, "
-                         f"expected {fmt}); rerun `party train_generator`")
+        raise ValueError(f"{path}: not a party {what} (format {obj.get('format') if isinstance(obj, dict) else '?'}, "
+                         f"expected {fmt}); rerun `{produced_by}`")
     return obj
 
 

@@ -104,7 +104,8 @@ class ResidualQuantizer(nn.Module):
 
 
 class RVQVAE(VQVAE):
-    """The convolutional VQ-VAE with a residual quantizer: codes (B, n, Q)."""
+    """The convolutional VQ-VAE with a residual quantizer: codes (B, n, Q) (``VQVAE``'s encode,
+    decode and forward, whose code tensors take the quantizer's levels)."""
 
     def __init__(self, in_dim: int, cfg: Mapping[str, Any]):
         cfg = _conventional(cfg, "rvq")
@@ -120,36 +121,6 @@ class RVQVAE(VQVAE):
     @property
     def levels(self) -> int:
         return self.quantizer.levels
-
-    @torch.no_grad()
-    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None):
-        """Codes (B, n, Q) long (-1 at every level of a padded group) and the node mask."""
-        x, frame_mask, node_mask = self._fit_length(x, mask)
-        z, _ = self.encode_features(x, frame_mask, node_mask)
-        idx = self.quantizer.nearest(z)
-        return idx.masked_fill(~node_mask[..., None], -1), node_mask
-
-    def decode(self, idx: torch.Tensor) -> torch.Tensor:
-        """Codes (B, n, Q) (a padded group: -1, decoded from a zero vector) -> (B, n*w, D)."""
-        valid = (idx >= 0).all(-1)
-        q = self.quantizer.dequantize(idx.clamp(min=0)) * valid[..., None]
-        return self.decoder(q)
-
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-        x, frame_mask, node_mask = self._fit_length(x, mask)
-        z, _ = self.encode_features(x, frame_mask, node_mask)
-        out = self.quantizer(z[node_mask])
-        idx = torch.full((*node_mask.shape, self.levels), -1, dtype=torch.long, device=x.device)
-        idx[node_mask] = out["idx"]
-        if self.training:
-            q = torch.zeros_like(z)
-            q[node_mask] = out["q"].to(z.dtype)
-            recon = self.decoder(q)
-        else:
-            recon = self.decode(idx)
-        return {"recon": recon.float(), "target": x, "frame_mask": frame_mask, "node_mask": node_mask,
-                "idx": idx, "alpha": None, "loss_app": out["loss_app"], "perplexity": out["perplexity"],
-                "resets": out["resets"], "usage": out["usage"]}
 
 
 register_family("vq", ConvVQVAE)

@@ -113,15 +113,17 @@ class VQVAE(nn.Module):
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None):
-        """Codes (B, n) long (-1 on padded groups) and the node mask."""
+        """Codes (B, n) long ((B, n, Q) for a quantizer of Q levels; -1 on padded groups, at every
+        level) and the node mask."""
         x, frame_mask, node_mask = self._fit_length(x, mask)
         z, _ = self.encode_features(x, frame_mask, node_mask)
         idx = self.quantizer.nearest(z)
-        return idx.masked_fill(~node_mask, -1), node_mask
+        pad = ~node_mask if idx.dim() == 2 else ~node_mask[..., None]
+        return idx.masked_fill(pad, -1), node_mask
 
     def decode(self, idx: torch.Tensor) -> torch.Tensor:
-        """Codes (B, n) (negative = padding, decoded from a zero vector) -> (B, n*w, D)."""
-        valid = idx >= 0
+        """Codes (B, n) or (B, n, Q) (negative = padding, decoded from a zero vector) -> (B, n*w, D)."""
+        valid = idx >= 0 if idx.dim() == 2 else (idx >= 0).all(-1)
         q = self.quantizer.dequantize(idx.clamp(min=0)) * valid[..., None]
         return self.decoder(q)
 
@@ -130,7 +132,7 @@ class VQVAE(nn.Module):
         x, frame_mask, node_mask = self._fit_length(x, mask)
         z, alpha = self.encode_features(x, frame_mask, node_mask)
         out = self.quantizer(z[node_mask])
-        idx = torch.full(node_mask.shape, -1, dtype=torch.long, device=x.device)
+        idx = torch.full((*node_mask.shape, *out["idx"].shape[1:]), -1, dtype=torch.long, device=x.device)
         idx[node_mask] = out["idx"]
         if self.training:
             q = torch.zeros_like(z)

@@ -173,26 +173,15 @@ def model_config(tcfg, motion_dim: int, text_dim: int) -> TMAConfig:
 
 
 def save_tma(path: Path, model: TMA, meta: dict) -> None:
-    import io as _io
-
-    from party.io import write_bytes
-    buf = _io.BytesIO()
-    torch.save({"format": FORMAT, "config": dict(model.cfg.__dict__), "meta": meta,
-                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}, buf)
-    write_bytes(path, buf.getvalue())
+    from party.methods.store import save_weights
+    save_weights(path, FORMAT, dict(model.cfg.__dict__), meta, model.state_dict())
 
 
 def load_tma(path: str | Path, map_location="cpu") -> tuple[TMA, dict]:
     """A trained TMA (``model.pt``, or its folder) and its meta, read with ``weights_only=True``."""
-    from party.io import load_torch
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.pt"
-    obj = load_torch(path, "party train_tma", "TMA model", map_location)
-    if not isinstance(obj, dict) or obj.get("format") != FORMAT:
-        raise ValueError(f"{path}: not a TMA model (format {obj.get('format') if isinstance(obj, dict) else None!r}, "
-                         f"expected {FORMAT!r}); train one with `party train_tma`")
-    model = TMA(TMAConfig(**obj["config"]))
+    from party.methods.store import load_weights
+    obj = load_weights(path, FORMAT, map_location, "party train_tma", "TMA model")
+    model = TMA(TMAConfig(**obj["spec"]))
     model.load_state_dict(obj["state_dict"])
     return model.eval(), obj["meta"]
 
