@@ -100,6 +100,8 @@ def test_h2vq_refuses_what_it_cannot_read():
         build_model(263, cfg(table="core3"))
     with pytest.raises(ValueError, match="multiple of the coarse"):
         build_model(263, cfg((4, 2)))
+    with pytest.raises(ValueError, match="window to it"):
+        build_model(263, cfg(window=8))
     with pytest.raises(ValueError, match=r"vqvae\.families\.h2vq"):
         build_model(263, {k: v for k, v in cfg().items() if k != "h2vq"})
 
@@ -126,3 +128,23 @@ def test_h2vq_trains_and_extracts(tiny_prepared, tmp_path):
     store = TokenStore.open(tmp_path / "tokens/holistic")
     assert store.levels == 3 and store.meta["family"] == "h2vq"
     assert store.codes.shape[1] == 3 and store.codes.min() >= 0
+
+
+def test_the_quantizer_grid_builds_every_point_at_its_bit_rate():
+    """conf/sweep/tomato_quantizers.yaml on the composed default config: every point's whole-body
+    tokenizer builds, and the equal-bit pairs are equal (6.75 and 4.5 bits per frame)."""
+    from pathlib import Path
+
+    from party.config import compose
+    from party.sweep import apply_overrides, expand, load_sweep
+    from party.tokenizers.config import stream_config
+
+    conf = Path("conf")
+    cfg = compose([], conf)
+    bits = {}
+    for p in expand(load_sweep("tomato_quantizers", conf / "sweep")):
+        pc = apply_overrides(cfg, p["overrides"])
+        m = build_model(263, stream_config(pc.vqvae, "holistic")["model"])
+        bits[p["label"]] = bits_per_frame(m)
+    assert bits == pytest.approx({"vq512": 2.25, "vq1024": 2.5, "rvq512x2": 4.5, "h2vq512_eq": 4.5,
+                                  "h2vq512": 6.75, "rvq512x3": 6.75})

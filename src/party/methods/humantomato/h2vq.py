@@ -67,6 +67,10 @@ class H2VQ(nn.Module):
         if rc < 1 or rf < rc or rf % rc:
             raise ValueError(f"h2vq rates: the fine group's downsampling must be a multiple of the coarse "
                              f"group's, got coarse {rc}, fine {rf}")
+        if int(cfg["window"]) != rf:
+            raise ValueError(f"h2vq: a token row spans the fine group's downsampling ({rf} frames, "
+                             f"vqvae.families.h2vq.rates.fine); set the stream's window to it, got window "
+                             f"{cfg['window']}")
         self.rates = (rc, rf)
         self.window = rf                     # a row: rf frames, rf / rc coarse codes + 1 fine code
         self.per_row = rf // rc
