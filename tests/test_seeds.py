@@ -165,6 +165,7 @@ def test_the_grid_report_and_a_bad_side_cache(tmp_path):
     assert path == tmp_path / "report.html"
     assert "Metrics against budget" in page and page.count("data:image/png;base64,") == 1
     assert "<td>b3</td><td>b</td><td>s1, s2</td>" in page        # the running point is not in the means
+    assert "<li>Top 1 ↑ (budget b1)" in page and "Tables and charts" not in page   # its own legend, lists
     assert seeds.write_grid_report(tmp_path, {**spec, "seeds": None}, points) is None
     (tmp_path / "side").mkdir()
     (tmp_path / "side" / "b1-s1-a.json").write_text('{"a": {"mean": 0.8}}')

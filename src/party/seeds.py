@@ -307,7 +307,7 @@ def grid_report(rows: Sequence[Mapping], axes: Sequence[str], declared: Mapping,
         png = curve_png(summarize(rows, axes, declared["axis"]), declared["curve"], declared.get("columns"))
     md = "\n".join([f"## Mean over training seeds (axis `{declared['axis']}`)", "", *grid_lines(rows, axes, declared)])
     return report_html(md, png, [], title, charts_title=f"Metrics against {declared.get('curve')}: the mean over "
-                       "training seeds, the band from the lowest to the highest seed")
+                       "training seeds, the band from the lowest to the highest seed", legend=False)
 
 
 def finished_rows(grid: str | Path, points: Mapping) -> list[dict]:

@@ -78,10 +78,14 @@ def inline(s: str) -> str:
 
 
 def markdown_to_html(md: str) -> str:
-    """The subset of Markdown ``tables.md`` uses: headings, pipe tables, paragraphs, `code`, **bold**."""
-    out, table = [], []
+    """The subset of Markdown ``tables.md`` and the seed tables use: headings, pipe tables, ``- ``
+    lists, paragraphs, `code`, **bold**."""
+    out, table, items = [], [], []
 
     def flush():
+        if items:
+            out.append("<ul>" + "".join(f"<li>{inline(i)}</li>" for i in items) + "</ul>")
+            items.clear()
         if not table:
             return
         head, *body = [r for r in table if not re.fullmatch(r"\|?[\s\-:|]+\|?", r)]
@@ -94,6 +98,11 @@ def markdown_to_html(md: str) -> str:
     for line in md.splitlines():
         if line.startswith("|"):
             table.append(line)
+            continue
+        if line.startswith("- "):
+            if table:
+                flush()
+            items.append(line[2:])
             continue
         flush()
         m = re.match(r"(#{1,6})\s+(.*)", line)
@@ -177,9 +186,11 @@ def legend_html(animated: bool = True) -> str:
 
 
 def report_html(tables_md: str, charts_png: bytes | None, gifs: Sequence[tuple[str, bytes]], title: str,
-                charts_title: str = "Metrics with 95% CIs") -> str:
+                charts_title: str = "Metrics with 95% CIs", legend: bool = True) -> str:
+    """The page; ``legend`` False for tables that say what their marks mean themselves (a grid's
+    seed tables, whose bold is a lead beyond the training noise)."""
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>", f"<title>{html.escape(title)}</title>",
-             _STYLE, "</head><body>", f"<h1>{html.escape(title)}</h1>", legend_html(bool(gifs))]
+             _STYLE, "</head><body>", f"<h1>{html.escape(title)}</h1>", legend_html(bool(gifs)) if legend else ""]
     if charts_png is not None:
         parts += [f"<h2>{html.escape(charts_title)}</h2>",
                   f"<figure><img alt='metrics' src='{_data_uri(charts_png, 'image/png')}'></figure>"]
