@@ -712,6 +712,7 @@ class Eval:
     ci_z: float = _POSITIVE()
     multimodality: Multimodality = _group(Multimodality)
     mpjpe_scale: float = MISSING
+    retrievers: Dict[str, str] = MISSING     # name -> folder (party.evaluation.retrievers)
     sources: EvalSources = _group(EvalSources)
     coherence: Coherence = _group(Coherence)
     physics: Physics = _group(Physics)
@@ -1173,6 +1174,7 @@ NAME_KEYS: tuple[tuple[str, str], ...] = (
     ("dataset.parts.coherence", "keys"), ("dataset.parts.part_tokenizers", "items"),
     ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"), ("vqvae.tokenizers", "keys"),
     ("evaluator.stream", "value"), ("evaluator.streams", "items"), ("tma.which", "value"), ("tma.models", "keys"),
+    ("eval.retrievers", "keys"),
     ("eval.sources.tokenizers", "items"),
     ("generator.method", "value"), ("generator.methods", "keys"), ("generator.streams", "items"),
 )

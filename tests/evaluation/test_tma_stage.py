@@ -68,3 +68,53 @@ def test_unknown_model_name_is_refused(tma_run):
     _, cfg, _ = tma_run
     with pytest.raises(ValueError, match="tma.which='nope'"):
         train_tma(cfg, "nope", "/nonexistent", None)
+
+
+def test_evaluate_scores_with_tma_beside_the_evaluators(tma_run, tmp_path):
+    """eval.retrievers {tma: <folder>}: party evaluate scores ground truth with TMA (L2-normalised mu),
+    its table is in tables.md, and its R-Precision on ground truth is far above chance."""
+    import party.text.encoders as enc
+    from party.stages import evaluate
+
+    tmp, cfg, _ = tma_run
+    c = cfg.copy()
+    c.eval.retrievers = {"tma": str(tmp / "tma" / "prior")}
+    c.evaluator.out_dir = str(tmp_path / "no_evaluators")          # TMA alone
+    c.eval.sources.tokenizers = []
+    c.eval.sources.generated = []
+    c.eval.out_dir, c.eval.metrics_dir = str(tmp_path / "eval"), str(tmp_path / "metrics")
+    c.eval.batch_size, c.eval.large_batch_size = 8, 32
+    mp = pytest.MonkeyPatch()
+    mp.setattr(enc, "build_text_encoder", lambda text_cfg: FakeTextEncoder())
+    try:
+        m = evaluate.run(c)
+    finally:
+        mp.undo()
+    gt = m["results"]["ground_truth"]["tma"]
+    assert gt["top1"]["mean"] > 0.5 > 2 / 8 and "top1_b32" in gt and gt["mm_dist"]["mean"] < 2.0
+    tables = (tmp_path / "eval" / "tables.md").read_text()
+    assert "Retrieval by tma (eval.retrievers.tma)" in tables and "| Real motion |" in tables
+    assert m["summary"]["evaluators"] == {"tma": "tma"}
+    c.eval.retrievers = {"holistic": str(tmp / "tma" / "prior")}
+    with pytest.raises(ValueError, match="eval.retrievers.holistic: the name of an evaluator stream"):
+        evaluate.run(c)
+
+
+def test_a_worker_share_loads_its_own_retrievers_only(tma_run, monkeypatch):
+    """party evaluate's shares (eval.workers > 1): a share of ["holistic"] loads no retriever, a share
+    of ["tma"] loads TMA and no stream evaluator, so nothing is scored twice."""
+    import party.evaluation.loading as loading
+    from party.evaluation.parallel import protocol_inputs
+
+    _, cfg, _ = tma_run
+    c = cfg.copy()
+    c.eval.retrievers = {"tma": "some/folder"}
+    c.eval.sources.tokenizers, c.eval.sources.generated = [], []
+    seen = []
+    monkeypatch.setattr(loading, "load_evaluators",
+                        lambda only, ctx, device: seen.append((list(only.evaluator.streams),
+                                                               dict(only.eval.retrievers))) or {})
+    for share in (["holistic"], ["tma"], None):
+        protocol_inputs(c, share, sc_reference=False)
+    assert seen[0] == (["holistic"], {}) and seen[1] == ([], {"tma": "some/folder"})
+    assert seen[2][1] == {"tma": "some/folder"}

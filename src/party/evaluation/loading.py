@@ -17,6 +17,7 @@ from party.evaluation.coherence import Parts, SCReference
 from party.data.context import DataContext, load_context
 from party.evaluation.efficiency import measure_ait
 from party.evaluation.protocol import motion_joints
+from party.evaluation.retrievers import load_retriever
 from party.evaluation.sources import find_tokenizer, load_tokenizer_source
 from party.io import load_npy
 from party.training import count_params
@@ -50,6 +51,14 @@ def load_evaluators(cfg: DictConfig, ctx: DataContext, device: torch.device) -> 
             out[s] = load_trained(path, device, glove_dir=cfg.evaluator.glove_dir)
         if out[s].feat_dim != ctx.feat_dim:
             raise ValueError(f"{s} evaluator reads {out[s].feat_dim}-dim features, dataset has {ctx.feat_dim}")
+    for name, folder in ((cfg.get("eval") or {}).get("retrievers") or {}).items():
+        if name in ctx.layout.streams or name.startswith("recon_") or name == "ground_truth":
+            raise ValueError(f"eval.retrievers.{name}: the name of an evaluator stream or a source; name it otherwise")
+        if not (Path(folder) / "model.pt").is_file():
+            log.warning("%s: no model.pt; the %s retriever's metrics are skipped (eval.retrievers.%s)",
+                        folder, name, name)
+            continue
+        out[name] = load_retriever(name, folder, cfg, ctx, device)
     if not out:
         raise FileNotFoundError(f"no evaluator found under {evc.out_dir}; run `party train_evaluator` first")
     return out

@@ -71,7 +71,11 @@ def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_refere
     ec = cfg.eval
     ctx = load_context(cfg)
     device = resolve_device(ec.device)
-    only = cfg if streams is None else OmegaConf.merge(cfg, {"evaluator": {"streams": list(streams)}})
+    only = cfg
+    if streams is not None:        # a share: its evaluator streams and retrievers (eval.retrievers) alone
+        retr = OmegaConf.to_container(ec.retrievers, resolve=True) if ec.get("retrievers") else {}
+        only = OmegaConf.merge(cfg, {"evaluator": {"streams": [s for s in streams if s not in retr]}})
+        only.eval.retrievers = {k: v for k, v in retr.items() if k in streams}
     evaluators = load_evaluators(only, ctx, device)
     parts = coherence_parts(cfg, ctx) if ec.coherence.enabled else None
     sc_ref = None

@@ -237,6 +237,24 @@ def table1(results: Mapping, whole_stream: str, large: int = 256) -> str:
     return out
 
 
+def retriever_table(results: Mapping, name: str, large: int = 256) -> str:
+    """R-Precision at 32 and ``large`` candidates and the matching score of every source under
+    another text-motion model (``eval.retrievers.<name>``; HumanTOMATO's TMA: TMA-R-Precision and
+    TMA-Matching)."""
+    rows = []
+    for src, d in results.items():
+        h = d.get(name)
+        if h:
+            rows.append(Row([label(src)] + [Num(h.get(k)) for k in ("top1", "top2", "top3", f"top1_b{large}",
+                                                                    f"top2_b{large}", f"top3_b{large}", "mm_dist")],
+                            row_kind(src)))
+    if not rows:
+        return ""
+    return ranked_table(f"Retrieval by {name} (eval.retrievers.{name}): R-Precision with 32 and {large} candidates, "
+                        "matching score", ["Method", "Top 1 ↑", "Top 2 ↑", "Top 3 ↑", f"Top 1 (B={large}) ↑",
+                                           f"Top 2 (B={large}) ↑", f"Top 3 (B={large}) ↑", "Matching ↓"], rows)
+
+
 def table2(results: Mapping, part_streams: Sequence[str]) -> str:
     rows = []
     for src, d in results.items():
@@ -364,11 +382,13 @@ def subset_table(results: Mapping, subset: str, streams: Sequence[str], descript
 
 
 def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str = "", large: int = 256, *,
-           whole_stream: str, part_streams: Sequence[str], subsets: Mapping[str, str] | None = None) -> str:
+           whole_stream: str, part_streams: Sequence[str], subsets: Mapping[str, str] | None = None,
+           retrievers: Sequence[str] = ()) -> str:
     """All tables, after ``header`` and the legend (``TABLE_LEGEND``). ``whole_stream`` / ``part_streams``:
     ``PartLayout.whole_stream`` / ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description}
-    of ``run_protocol``'s subsets."""
-    parts = [header, TABLE_LEGEND, table1(results, whole_stream, large), table2(results, part_streams),
+    of ``run_protocol``'s subsets; ``retrievers``: the names of ``eval.retrievers`` (a table each)."""
+    parts = [header, TABLE_LEGEND, table1(results, whole_stream, large),
+             *(retriever_table(results, r, large) for r in retrievers), table2(results, part_streams),
              table3(results), physics_table(results)]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))

@@ -65,7 +65,8 @@ def run(cfg: DictConfig, run_) -> dict:
         header += ("\n\nGenerated runs covering part of the split, scored on their clips only: "
                    + ", ".join(partial) + " clips.")
     tables = report(results, eff, switches, header, ec.large_batch_size, whole_stream=ctx.layout.whole_stream,
-                    part_streams=ctx.layout.part_streams, subsets={k: d for k, (_, d) in subsets.items()})
+                    part_streams=ctx.layout.part_streams, subsets={k: d for k, (_, d) in subsets.items()},
+                    retrievers=[r for r in (ec.retrievers or {}) if r in evaluators])
     means = dvc_metrics(results, ec.metrics_digits)
     for source in means:                # file names (a generated run's name comes from its index.json)
         check_name(source, "evaluation source", f"{ec.metrics_dir}/<source>.json")
