@@ -30,7 +30,7 @@ def test_rvq_codes_levels_padding_and_exact_decode():
     m = build_model(5, CFG)
     x = torch.randn(3, 24, 5)
     m.train()
-    m(x)                                                # initialises every codebook from this batch
+    m(torch.randn(16, 64, 5))     # initialises every codebook from 256 vectors (more than its 16 codes)
     m.eval()
     mask = torch.ones(3, 24, dtype=torch.bool)
     mask[1, 13:] = False                                # 3 whole groups of 4, then padding

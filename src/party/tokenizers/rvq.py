@@ -54,14 +54,6 @@ class ResidualQuantizer(nn.Module):
         self.levels, self.n_codes, self.dropout = levels, n_codes, dropout
         self.quantizers = nn.ModuleList(EMAQuantizer(n_codes, dim, decay, reset_threshold) for _ in range(levels))
 
-    @property
-    def codebook(self) -> torch.Tensor:         # level 0's (where the diagnostics put code vectors)
-        return self.quantizers[0].codebook
-
-    @property
-    def resets_total(self) -> torch.Tensor:
-        return sum(q.resets_total for q in self.quantizers)
-
     def nearest(self, z: torch.Tensor) -> torch.Tensor:
         """(..., dim) -> codes (..., Q)."""
         res, out = z.float(), []
