@@ -72,7 +72,7 @@ class GeneratorDataset(Dataset):
 
     def __init__(self, ctx, stores: Mapping[str, TokenStore], embeddings: EmbeddingStore,
                  part_texts: Mapping[str, Mapping[str, str]], split: str, parts: Sequence[str],
-                 no_movement_text: str, max_tokens: int):
+                 no_movement_text: str, max_tokens: int, multi_level: bool = False):
         if int(max_tokens) < 2:
             raise ValueError(f"max_tokens = {max_tokens}: needs room for one code and END "
                              "(generator.model.max_tokens >= 2)")
@@ -86,8 +86,8 @@ class GeneratorDataset(Dataset):
             if st.meta["stream"] != s:
                 raise ValueError(f"{st.root}: holds the {st.meta['stream']!r} tokens, expected "
                                  f"{s!r}; check generator.tokens_dir or rerun `party extract_tokens`")
-            if st.levels != 1:
-                raise ValueError(f"{st.root}: {st.levels} code levels per token; the generator "
+            if st.levels != 1 and not multi_level:
+                raise ValueError(f"{st.root}: {st.levels} code levels per token; this method "
                                  "predicts one code per token (use a one-level tokenizer and rerun "
                                  "`party extract_tokens`)")
         self.windows = {s: int(st.meta["window"]) for s, st in stores.items()}
@@ -184,7 +184,7 @@ def collate_generator(items: Sequence[dict], pad: Mapping[str, int]) -> dict:
     codes, lengths = {}, {}
     for s in streams:
         n = torch.tensor([it["lengths"][s] for it in items], dtype=torch.long)
-        out = torch.full((B, int(n.max())), int(pad[s]), dtype=torch.long)
+        out = torch.full((B, int(n.max()), *items[0]["codes"][s].shape[1:]), int(pad[s]), dtype=torch.long)
         for b, it in enumerate(items):
             out[b, :n[b]] = it["codes"][s]
         codes[s], lengths[s] = out, n
@@ -198,22 +198,24 @@ def collate_generator(items: Sequence[dict], pad: Mapping[str, int]) -> dict:
 
 def corrupt_codes(codes: torch.Tensor, lengths: torch.Tensor, K: int, max_prob: float,
                   generator: torch.Generator | None) -> torch.Tensor:
-    """T2M-GPT token corruption: a copy of ``codes`` (B, L) in which each position < ``lengths[b]``
-    is replaced, with probability p_b ~ U[0, max_prob] drawn per sample, by a random code in
+    """T2M-GPT token corruption: a copy of ``codes`` (B, L) (or (B, L, Q): each code of a row on its
+    own) in which each code of a position < ``lengths[b]`` is replaced, with probability p_b ~ U[0, max_prob] drawn per sample, by a random code in
     [0, K). Positions past the length (PAD) are untouched. Apply it to the teacher-forcing
     *inputs* only; the targets must stay the clean codes. Draws come from ``generator``
     (on any device; None: torch's default generator), so a seeded generator reproduces them."""
     if not 0.0 <= float(max_prob) <= 1.0:
         raise ValueError(f"corruption probability {max_prob} outside [0, 1] (generator.corruption.prob)")
-    if codes.ndim != 2 or lengths.shape != codes.shape[:1]:
-        raise ValueError(f"codes {tuple(codes.shape)} / lengths {tuple(lengths.shape)}: expected (B, L) / (B,)")
-    B, L = codes.shape
+    if codes.ndim not in (2, 3) or lengths.shape != codes.shape[:1]:
+        raise ValueError(f"codes {tuple(codes.shape)} / lengths {tuple(lengths.shape)}: expected (B, L[, Q]) / (B,)")
+    B, L = codes.shape[:2]
+    extra = (1,) * (codes.ndim - 2)
     dev = generator.device if generator is not None else torch.device("cpu")
-    p = torch.rand(B, 1, generator=generator, device=dev) * float(max_prob)
-    hit = torch.rand(B, L, generator=generator, device=dev) < p
-    rnd = torch.randint(0, int(K), (B, L), generator=generator, device=dev)
+    p = torch.rand(B, 1, *extra, generator=generator, device=dev) * float(max_prob)
+    hit = torch.rand(codes.shape, generator=generator, device=dev) < p
+    rnd = torch.randint(0, int(K), codes.shape, generator=generator, device=dev)
     hit, rnd = hit.to(codes.device), rnd.to(codes.device, codes.dtype)
-    hit &= torch.arange(L, device=codes.device)[None] < lengths.to(codes.device)[:, None]
+    inside = torch.arange(L, device=codes.device)[None] < lengths.to(codes.device)[:, None]
+    hit &= inside.view(B, L, *extra)
     return torch.where(hit, rnd, codes)
 
 
@@ -292,11 +294,13 @@ def open_token_stores(tokens_dir: str | Path, streams: Sequence[str]) -> dict[st
     return {str(s): TokenStore.open(Path(tokens_dir) / str(s)) for s in streams}
 
 
-def build_generator_data(cfg, split: str, streams: Sequence[str] | None = None) -> GeneratorDataset:
+def build_generator_data(cfg, split: str, streams: Sequence[str] | None = None,
+                         multi_level: bool = False) -> GeneratorDataset:
     """``GeneratorDataset`` of ``split`` wired from the config: ``paths.prepared`` (index),
     ``generator.tokens_dir`` / ``streams`` (token stores; None: ``generator.streams``), ``text.embeddings_dir``
     (current encoder), ``text.part_texts_path`` / ``part_texts.parts``,
-    ``generator.loss.no_movement_text`` and ``generator.model.max_tokens``."""
+    ``generator.loss.no_movement_text`` and ``generator.model.max_tokens``; ``multi_level``: rows of
+    Q codes per token allowed (a method that reads them)."""
     from party.data.context import load_context
     from party.text.cache import load_part_texts
 
@@ -305,4 +309,4 @@ def build_generator_data(cfg, split: str, streams: Sequence[str] | None = None) 
     return GeneratorDataset(load_context(cfg), open_token_stores(g.tokens_dir, g.streams if streams is None else streams),
                             EmbeddingStore.open(cfg.text.embeddings_dir),
                             load_part_texts(cfg.text.part_texts_path, parts), split, parts,
-                            str(g.loss.no_movement_text), int(g.model.max_tokens))
+                            str(g.loss.no_movement_text), int(g.model.max_tokens), multi_level)

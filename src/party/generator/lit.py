@@ -18,7 +18,7 @@ import torch
 from party.generator.data import corrupt_codes
 from party.training import adam, step_lr_factor
 
-_SCALARS = ("loss", "hol", "part", "div", "aux")
+_SCALARS = ("loss", "hol", "part", "div", "aux", "ce", "align")
 
 
 class GeneratorLit(L.LightningModule):

@@ -105,7 +105,9 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
     start_training(seed, t.threads)
     streams = family.token_streams(cfg, method)           # the token stores it trains on
     built_from = provenance.generator_inputs(cfg, streams)   # each store checked against its tokenizer first
-    train_ds, val_ds = build_generator_data(cfg, "train", streams), build_generator_data(cfg, t.val_split, streams)
+    multi = bool(getattr(family, "multi_level", False))     # rows of Q codes per token
+    train_ds = build_generator_data(cfg, "train", streams, multi)
+    val_ds = build_generator_data(cfg, t.val_split, streams, multi)
     model = family.build_model(cfg, method, train_ds)
     val_loader = _loader(val_ds, t.batch_size, False, 0, seed)
     untrained = _evaluate(model, val_loader)              # the trivial baseline: these weights before training

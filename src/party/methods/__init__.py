@@ -25,7 +25,8 @@ if TYPE_CHECKING:                          # pragma: no cover
     from party.methods.base import MethodFamily
 
 #: the modules of the built-in families (imported on first look-up)
-BUILTIN = ("party.methods.party", "party.methods.parco", "party.methods.random_codes")
+BUILTIN = ("party.methods.party", "party.methods.parco", "party.methods.random_codes",
+           "party.methods.humantomato.family")
 
 _FAMILIES: dict[str, type] = {}
 _loaded: set[str] = set()

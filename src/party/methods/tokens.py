@@ -143,6 +143,8 @@ class TokenModelFamily(MethodFamily):
 
     FORMAT: str = ""
     consumes = ("tokens",)
+    #: whether its model reads rows of Q codes per token (multi-level token stores)
+    multi_level: bool = False
 
     @classmethod
     def model_from_spec(cls, spec: dict):

@@ -127,6 +127,15 @@ class VQVAE(nn.Module):
         q = self.quantizer.dequantize(idx.clamp(min=0)) * valid[..., None]
         return self.decoder(q)
 
+    def decode_weights(self, w: torch.Tensor) -> torch.Tensor:
+        """Code weights (B, n, Q, K) (one-hot rows decode as ``decode`` does; relaxed ones mix code
+        vectors; zero rows decode from a zero vector) -> (B, n*w, D), differentiable in ``w``."""
+        q = self.quantizer
+        books = [m.codebook for m in q.quantizers] if hasattr(q, "quantizers") else [q.codebook]
+        if w.shape[2] != len(books):
+            raise ValueError(f"weights of {w.shape[2]} levels for a {len(books)}-level quantizer")
+        return self.decoder(sum(w[:, :, i] @ b.to(w.dtype) for i, b in enumerate(books)))
+
     # ---------------------------------------------------------------- forward
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
         x, frame_mask, node_mask = self._fit_length(x, mask)
@@ -318,6 +327,11 @@ class Tokenizer(nn.Module):
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """Codes (B, n[, Q]) -> normalised stream features (B, n*w, D)."""
         return self.model.decode(codes)
+
+    def decode_weights(self, w: torch.Tensor) -> torch.Tensor:
+        """Code weights (B, n, Q, K) -> normalised stream features (B, n*w, D), with gradients
+        (relaxed codes, e.g. a generator's alignment loss through this frozen decoder)."""
+        return self.model.decode_weights(w)
 
     @torch.no_grad()
     def tokenize(self, raw) -> torch.Tensor:

@@ -107,6 +107,19 @@ class H2VQ(nn.Module):
     def codebook_size(self) -> int:
         return self.q_fine.n_codes
 
+    @property
+    def slot_groups(self) -> list[int]:
+        """The codebook of each slot of a row: the coarse slots share one (0), the fine slot has its own (1)."""
+        return [0] * self.per_row + [1]
+
+    def decode_weights(self, w: torch.Tensor) -> torch.Tensor:
+        """Code weights (B, n, Q, K) -> (B, n * window, D), differentiable in ``w`` (one-hot rows decode
+        as ``decode``; zero rows from zero vectors)."""
+        B, n = w.shape[:2]
+        qc = (w[:, :, :-1] @ self.q_coarse.codebook.to(w.dtype)).reshape(B, n * self.per_row, -1)
+        qf = w[:, :, -1] @ self.q_fine.codebook.to(w.dtype)
+        return self._decode_q(qc, qf)
+
     def group(self, x: torch.Tensor, name: str) -> torch.Tensor:
         return x[..., getattr(self, f"idx_{name}")]
 
