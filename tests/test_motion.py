@@ -85,7 +85,7 @@ def test_stream_names_come_from_the_config(repo_root, skeleton, n_joints):
     assert layout.streams == cfg["streams"] == list(layout.stream_index)
     assert [layout.whole_stream, *layout.part_streams] == cfg["streams"]
     assert np.array_equal(layout.index(layout.whole_stream), np.arange(layout.feat_dim))
-    renamed = {**cfg, "streams": ["body", "upper", "lower"],
+    renamed = {**cfg, "streams": ["body", "upper", "lower"], "aliases": {"tomato": "body"},
                "stream_parts": {"upper": cfg["stream_parts"]["arms"], "lower": cfg["stream_parts"]["legs"]}}
     other = PartLayout.from_config(renamed, n_joints)
     assert other.whole_stream == "body" and other.part_streams == ["upper", "lower"]
@@ -96,6 +96,20 @@ def test_stream_names_come_from_the_config(repo_root, skeleton, n_joints):
                 {**cfg, "streams": ["holistic", "arms"]}):                     # legs not a stream
         with pytest.raises(ValueError, match="exactly one stream"):
             PartLayout.from_config(bad, n_joints)
+
+
+@pytest.mark.parametrize("skeleton,n_joints", [("t2m", 22), ("kit", 21)])
+def test_an_alias_reads_its_streams_channels_and_is_no_stream(repo_root, skeleton, n_joints):
+    cfg = yaml.safe_load((repo_root / f"conf/dataset/parts/{skeleton}.yaml").read_text())
+    layout = PartLayout.from_config(cfg, n_joints)
+    assert cfg["aliases"] == {"tomato": "holistic"} and "tomato" not in layout.streams
+    assert np.array_equal(layout.index("tomato"), layout.index("holistic"))
+    assert layout.stream_joints("tomato") == layout.stream_joints("holistic")
+    x = np.random.default_rng(1).normal(size=(2, layout.feat_dim)).astype(np.float32)
+    assert np.array_equal(layout.merge({"tomato": layout.slice(x, "tomato")}), x)
+    for bad in ({"x": "nope"}, {"arms": "holistic"}, {"left_arm": "holistic"}):
+        with pytest.raises(ValueError, match="alias"):
+            PartLayout.from_config({**cfg, "aliases": bad}, n_joints)
 
 
 def test_merge_averages_disagreeing_copies(repo_root):

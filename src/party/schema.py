@@ -151,6 +151,8 @@ class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
     torso: List[int] = MISSING
     # disjoint channel groups that cover the vector once (group tables: H2VQ's coarse / fine groups)
     groups: Dict[str, Dict[str, ChannelGroup]] = field(default_factory=dict)
+    # other names of a stream: a tokenizer trained under the alias reads that stream's channels
+    aliases: Dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -508,6 +510,7 @@ class Vqvae:
     stream: str = MISSING
     streams: List[str] = MISSING
     part_streams: List[str] = MISSING
+    extra_streams: List[str] = field(default_factory=list)   # tokenizers under a stream alias (other families')
     out_dir: str = MISSING
     tokens_dir: str = MISSING
     resume_dir: str = MISSING
@@ -1172,7 +1175,9 @@ NAME_KEYS: tuple[tuple[str, str], ...] = (
     ("dataset.parts.streams", "items"), ("dataset.parts.parts", "keys"),
     ("dataset.parts.stream_parts", "keys"), ("dataset.parts.stream_parts", "value items"),
     ("dataset.parts.coherence", "keys"), ("dataset.parts.part_tokenizers", "items"),
-    ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"), ("vqvae.tokenizers", "keys"),
+    ("dataset.parts.aliases", "keys"),
+    ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"),
+    ("vqvae.extra_streams", "items"), ("vqvae.tokenizers", "keys"),
     ("evaluator.stream", "value"), ("evaluator.streams", "items"), ("tma.which", "value"), ("tma.models", "keys"),
     ("eval.retrievers", "keys"),
     ("eval.sources.tokenizers", "items"),

@@ -42,7 +42,8 @@ class PartLayout:
     """Index tables for parts, streams and coherence parts of one skeleton."""
 
     def __init__(self, n_joints: int, parts: Mapping[str, Mapping], streams: Sequence[str],
-                 stream_parts: Mapping[str, Sequence[str]], coherence: Mapping[str, Sequence[int]]):
+                 stream_parts: Mapping[str, Sequence[str]], coherence: Mapping[str, Sequence[int]],
+                 aliases: Mapping[str, str] | None = None):
         self.n_joints = n_joints
         self.feat_dim = 12 * n_joints - 1
         sl = feature_slices(n_joints)
@@ -84,13 +85,19 @@ class PartLayout:
             self.stream_index[name] = np.array(idx)
             self._stream_joints[name] = sorted({j for m in members for j in self.part_joints[m]})
         self.coherence_parts = {k: [int(j) for j in v] for k, v in coherence.items()}
+        # other names of a stream (its channels, tokenized by another tokenizer): no stream of their own
+        self.aliases = {str(a): str(s) for a, s in (aliases or {}).items()}
+        for a, s in self.aliases.items():
+            if s not in self.streams or a in self.stream_index or a in self.part_index:
+                raise ValueError(f"dataset.parts.aliases: {a!r} -> {s!r}: an alias names a stream ({self.streams}) "
+                                 f"and is neither a stream nor a part itself")
 
     @classmethod
     def from_config(cls, parts_cfg: Mapping, n_joints: int) -> "PartLayout":
         """From ``dataset.parts`` (``parts``, ``streams``, ``stream_parts``, ``coherence``; when given,
         ``part_tokenizers`` must be the root and every part, once each)."""
         layout = cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["stream_parts"],
-                     parts_cfg["coherence"])
+                     parts_cfg["coherence"], parts_cfg.get("aliases"))
         if "part_tokenizers" in parts_cfg:
             pt = [str(p) for p in parts_cfg["part_tokenizers"]]
             if sorted(pt) != sorted(layout.part_index) or len(set(pt)) != len(pt):
@@ -100,12 +107,13 @@ class PartLayout:
 
     # ------------------------------------------------------------------ slicing
     def index(self, name: str) -> np.ndarray:
+        name = self.aliases.get(name, name)
         if name in self.stream_index:
             return self.stream_index[name]
         if name in self.part_index:
             return self.part_index[name]
         raise KeyError(f"unknown part/stream {name!r}; streams {list(self.stream_index)}, "
-                       f"parts {list(self.part_index)}")
+                       f"parts {list(self.part_index)}, aliases {list(self.aliases)}")
 
     def stream_dim(self, name: str) -> int:
         return len(self.index(name))
@@ -114,12 +122,13 @@ class PartLayout:
         """Joint ids whose positions a stream or a part determines, root first. A part alone
         (``root``, ``left_arm``, ...: a ParCo-like tokenizer's stream) lists the root too: without
         the root channels its joints are recovered root-relative, the root at the origin."""
+        name = self.aliases.get(name, name)
         if name in self._stream_joints:
             return self._stream_joints[name]
         if name in self.part_joints:
             return [0] + [j for j in self.part_joints[name] if j != 0]
         raise KeyError(f"unknown part/stream {name!r}; streams {list(self.stream_index)}, "
-                       f"parts {list(self.part_index)}")
+                       f"parts {list(self.part_index)}, aliases {list(self.aliases)}")
 
     def slice(self, x, name: str):
         idx = self.index(name)

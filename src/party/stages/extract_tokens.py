@@ -1,7 +1,7 @@
 """``party extract_tokens``: code sequences of every motion, for every tokenizer.
 
-For each stream in ``vqvae.streams`` and ``vqvae.part_streams`` (the tokenizers of the body parts
-alone) loads ``<vqvae.out_dir>/<stream>/model.pt``
+For each stream in ``vqvae.streams``, ``vqvae.part_streams`` (the tokenizers of the body parts
+alone) and ``vqvae.extra_streams`` (other families' tokenizers under a stream alias) loads ``<vqvae.out_dir>/<stream>/model.pt``
 and writes ``<vqvae.tokens_dir>/<stream>/`` (see ``party.tokenizers.tokens``; its meta records
 the tokenizer's digest, ``party.provenance``):
 one entry per clip of the prepared index (all splits; mirrors are motions of
@@ -99,7 +99,7 @@ def run(cfg, run_) -> dict:
     tokenizer, or a crash, leaves the previous ``tokens_dir`` whole and nothing half-written."""
     vq = cfg.vqvae
     inputs = []
-    for stream in [*vq.streams, *(vq.get("part_streams") or [])]:
+    for stream in [*vq.streams, *(vq.get("part_streams") or []), *(vq.get("extra_streams") or [])]:
         path = Path(vq.out_dir) / stream
         tok = load_tokenizer(path)
         if tok.meta["stream"] != stream:

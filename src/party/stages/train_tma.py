@@ -3,9 +3,9 @@
 Reads ``tma.*`` (sizes, losses, budget, the seed of each model in ``tma.models``), ``text.*``
 (the token features it reads), the prepared dataset; writes ``<tma.out_dir>/<which>/`` atomically:
 ``model.pt``, ``metrics.json`` (test-split ground-truth retrieval, protocols A-D both ways, beside
-the untrained network and chance), ``config.yaml``. ``tma.eval_model: separate`` (default) trains
-``prior`` (the generator's text prior and alignment loss) and ``eval`` (the evaluator) with
-different seeds; ``same`` scores with ``prior`` as the paper does.
+the untrained network and chance), ``config.yaml``. ``tma.models`` holds ``prior`` (the generator's
+alignment loss) and ``eval`` (the evaluator), trained with different seeds; ``tma.eval_model``
+names the one that scores (``eval.retrievers.tma``): ``eval`` by default, ``prior`` as the paper does.
 """
 from __future__ import annotations
 

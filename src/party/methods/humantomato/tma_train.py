@@ -181,7 +181,10 @@ def load_tma(path: str | Path, map_location="cpu") -> tuple[TMA, dict]:
     """A trained TMA (``model.pt``, or its folder) and its meta, read with ``weights_only=True``."""
     from party.methods.store import load_weights
     obj = load_weights(path, FORMAT, map_location, "party train_tma", "TMA model")
-    model = TMA(TMAConfig(**obj["spec"]))
+    spec = obj.get("spec", obj.get("config"))       # "config": the key of models written before save_weights
+    if not isinstance(spec, dict):
+        raise ValueError(f"{path}: a TMA file without its network sizes (spec); rerun `party train_tma`")
+    model = TMA(TMAConfig(**spec))
     model.load_state_dict(obj["state_dict"])
     return model.eval(), obj["meta"]
 
