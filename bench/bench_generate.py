@@ -1,11 +1,14 @@
-"""Generation speed of the ParTY generator: KV cache against full recomputation, batch 32 against
+"""Generation speed of the token generators: KV cache against full recomputation, batch 32 against
 batch 1, measured in the same run on the paper model dims (random weights).
 
-    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3] [--methods party,holistic,party_parts_only]
-                                   [--text-dim 512] [--threads 1] [--device cpu]
+    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3]
+                                   [--methods party,holistic,party_parts_only,humantomato]
+                                   [--profile paper|cpu] [--text-dim 512] [--threads 1] [--device cpu]
 
-Model numbers come from conf/generator/paper.yaml (``model``, ``methods``); vocabularies and
-code windows from conf/vqvae/paper.yaml (``tokenizers``). Every sample is forced to the full
+Model numbers come from conf/generator/<profile>.yaml (``model``, ``methods``; ``cpu`` layers the
+CPU budget on the paper's); vocabularies and code windows from conf/vqvae/paper.yaml
+(``tokenizers``). HumanTOMATO's Hierarchical-GPT (``humantomato``) decodes rows of 2 core codes + 1
+arms code per 4 frames of its H2VQ stream (3 x frames // 4 positions). Every sample is forced to the full
 length (frames // w codes per stream), so every run generates the same number of tokens.
 Prints, per method: parameters per module, average inference time per sample at batch 1 and
 samples/s at batch 32, with and without the cache, and the ratios (cache vs no cache at batch 1;
@@ -49,10 +52,30 @@ def timed(model: PartyGenerator, c: torch.Tensor, lengths: dict, use_cache: bool
     return time.perf_counter() - t0, out
 
 
+def windows_of(model) -> dict[str, int]:
+    spec = model.spec
+    return dict(spec.windows) if hasattr(spec, "windows") else {spec.stream: spec.window}
+
+
+def build(name: str, gen_cfg, vocab: dict, windows: dict, text_dim: int):
+    """The method ``name`` of ``gen_cfg`` with random weights: a ParTY-family model or the Hierarchical-GPT."""
+    entry = gen_cfg.methods[name]
+    torch.manual_seed(0)
+    if entry.family == "humantomato":
+        from party.methods.humantomato.hgpt import HGPTSpec, HierarchicalGPT
+        s = str(entry.stream)
+        spec = HGPTSpec.from_config(gen_cfg.model, entry, [0, 0, 1], 2, vocab[s], windows[s], text_dim)
+        return HierarchicalGPT(spec)
+    streams = OmegaConf.load(REPO / "conf/dataset/parts/t2m.yaml").streams     # the ParTY family's token streams
+    spec = GeneratorSpec.from_config(gen_cfg.model, gen_cfg.loss, entry, {s: vocab[s] for s in streams},
+                                     {s: windows[s] for s in streams}, text_dim)
+    return PartyGenerator(spec)
+
+
 def run(model: PartyGenerator, batch: int, reps: int, use_cache: bool, frames: int, text_dim: int,
         device: torch.device) -> tuple[float, list]:
     """Total seconds for ``reps`` batches of ``batch`` samples (after one warm-up batch)."""
-    lengths = {s: torch.full((batch,), frames // w, device=device) for s, w in model.spec.windows.items()}
+    lengths = {s: torch.full((batch,), frames // w, device=device) for s, w in windows_of(model).items()}
     g = torch.Generator().manual_seed(0)
     cs = [torch.randn(batch, text_dim, generator=g).to(device) for _ in range(reps + 1)]
     timed(model, cs[0], lengths, use_cache, 0)
@@ -104,7 +127,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=196)
     ap.add_argument("--n1", type=int, default=20, help="samples timed at batch 1")
     ap.add_argument("--n32", type=int, default=3, help="batches of 32 timed")
-    ap.add_argument("--methods", default="party,holistic,party_parts_only")
+    ap.add_argument("--methods", default="party,holistic,party_parts_only,humantomato")
+    ap.add_argument("--profile", default="paper", choices=["paper", "cpu"], help="conf/generator/<profile>.yaml")
     ap.add_argument("--text-dim", type=int, default=512, help="CLIP ViT-B/32 text embedding width")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
@@ -112,6 +136,10 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     device = torch.device(a.device)
     gen_cfg = OmegaConf.load(REPO / "conf/generator/paper.yaml")
+    if a.profile == "cpu":
+        over = OmegaConf.load(REPO / "conf/generator/cpu.yaml")
+        over.pop("defaults", None)
+        gen_cfg = OmegaConf.merge(gen_cfg, over)
     tok_cfg = OmegaConf.load(REPO / "conf/vqvae/paper.yaml").tokenizers
     vocab = {s: int(t.codebook_size) for s, t in tok_cfg.items()}
     windows = {s: int(t.window) for s, t in tok_cfg.items()}
@@ -119,10 +147,8 @@ def main() -> None:
                                             for s, w in windows.items())
           + f"; model {dict(gen_cfg.model)}; device {device}, {torch.get_num_threads()} thread(s)")
     for name in a.methods.split(","):
-        spec = GeneratorSpec.from_config(gen_cfg.model, gen_cfg.loss, gen_cfg.methods[name], vocab, windows,
-                                         a.text_dim)
-        torch.manual_seed(0)
-        model = PartyGenerator(spec).to(device).eval()
+        model = build(name, gen_cfg, vocab, windows, a.text_dim).to(device).eval()
+        spec = model.spec
         counts = model.param_counts()
         print(f"\n[{name}] params: " + ", ".join(f"{k} {v / 1e6:.3f}M" for k, v in counts.items() if v))
         res = {}
@@ -144,6 +170,8 @@ def main() -> None:
         print(f"KV cache vs recomputation: {b1n / b1c:.1f}x at batch 1, {b32n / b32c:.1f}x at batch 32")
         print(f"batch 32 vs batch 1 per-sample throughput: {b1c / b32c:.1f}x with the cache, "
               f"{b1n / b32n:.1f}x without")
+        if not isinstance(model, PartyGenerator):
+            continue
         positions = {s: a.frames // w + 1 for s, w in spec.windows.items() if s in spec.streams}
         print(f"matmul ceiling of the cache at batch 1 ({', '.join(f'{s} {n}' for s, n in positions.items())} "
               f"positions): {ceiling(model, positions, device):.1f}x (measured above: {b1n / b1c:.1f}x)")

@@ -358,7 +358,8 @@ def test_protocol_reads_the_whole_body_stream_from_the_layout(trained, tmp_path)
     assert "recon_holistic" in default and "multimodality" in default["noisy"]["holistic"]
 
     name = {"holistic": "body", "recon_holistic": "recon_body"}
-    pc = {**ctx.parts_cfg, "streams": [name.get(s, s) for s in ctx.parts_cfg["streams"]]}
+    pc = {**ctx.parts_cfg, "streams": [name.get(s, s) for s in ctx.parts_cfg["streams"]],
+          "aliases": {a: name.get(s, s) for a, s in ctx.parts_cfg.get("aliases", {}).items()}}
     body = replace(ctx, layout=PartLayout.from_config(pc, ctx.n_joints), parts_cfg=pc)
     assert body.layout.whole_stream == "body"
     toks = {name.get(s, s): TokenizerSource(src.tok, name.get(s, s), body, torch.device("cpu"),

@@ -112,6 +112,7 @@ def tiny_cfg(tmp: Path, prepared: Path, **over):
              "vqvae.train.val_every": 2, "vqvae.train.ckpt_every": 2,
              "vqvae.train.render_samples": 0, "vqvae.train.threads": 1,
              "vqvae.part_streams": "[]",     # the three streams' tokenizers (part tokenizers: test_pipeline)
+             "vqvae.extra_streams": "[]",    # (the aliases' tokenizers too)
              **over}
     cfg.merge_with(OmegaConf.from_dotlist([f"{k}={v}" for k, v in small.items()]))
     return cfg
