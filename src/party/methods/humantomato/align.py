@@ -95,8 +95,6 @@ class Aligner:
         """L_align of a teacher-forcing batch: ``model.code_logits`` of ``logits`` relaxed, decoded, embedded."""
         if self.mean.device != logits.device:
             self.to(logits.device)
-        self.tokenizer.eval()
-        self.tma.eval()
         n = int(rows.max())
         weights = relax(model.code_logits(logits, n), self.how, self.gumbel_tau)
         mu_m = self.motion(weights, rows)

@@ -67,19 +67,14 @@ def slot_layout(tokenizer) -> tuple[list[int], int]:
 def build_aligner(cfg, entry, tokenizer):
     """The frozen decoder + TMA prior of L_align, the captions read with the TMA's text encoder."""
     from party.methods.humantomato.align import Aligner
-    from party.methods.humantomato.tma_train import TextFeatures, load_tma
-    from party.text.encoders import build_text_encoder
+    from party.methods.humantomato.tma_train import load_tma, tma_text
 
     folder = Path(str(entry.tma_prior))
     if not (folder / "model.pt").is_file():
         raise FileNotFoundError(f"{folder}/model.pt: no TMA prior for L_align (eta = {entry.eta}); train it with "
                                 "`party train_tma tma.which=prior`, or set eta=0")
     tma, meta = load_tma(folder)
-    enc = build_text_encoder(cfg.text)
-    if meta.get("text_encoder_id") and getattr(enc, "id", None) != meta["text_encoder_id"]:
-        raise ValueError(f"{folder}: the TMA prior read the text encoder {meta['text_encoder_id']!r}; text.* builds "
-                         f"{getattr(enc, 'id', None)!r}")
-    return Aligner(tokenizer, tma, meta, TextFeatures(enc, meta["max_text_tokens"]), float(entry.eta),
+    return Aligner(tokenizer, tma, meta, tma_text(folder, meta, cfg.text), float(entry.eta),
                    str(entry.relax), float(entry.gumbel_tau), float(entry.align_tau), float(entry.filter_threshold))
 
 
@@ -126,8 +121,8 @@ class HumanTomatoFamily(TokenModelFamily):
         from party.training import file_sha
 
         g = cfg.generator
-        entry = plain(method_config(g, method))
-        key = {"model": {k: plain(g.model)[k] for k in SHARED_MODEL_KEYS},
+        entry, model = plain(method_config(g, method)), plain(g.model)
+        key = {"model": {k: model[k] for k in SHARED_MODEL_KEYS},
                "method": {k: v for k, v in entry.items() if k != "family"}}
         if float(entry["eta"]) > 0:          # L_align reads the prior's weights: a retrained prior is a new run
             key["prior"] = file_sha(Path(entry["tma_prior"]) / "model.pt")

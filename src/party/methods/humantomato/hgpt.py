@@ -281,6 +281,7 @@ class HierarchicalGPT(TextNorm, nn.Module):
                 elif row < min_rows:
                     logits[:, self.end] = float("-inf")
                 force = force | (row >= M)
+            # no draw when every sample is forced to end: the shared random stream stays where it was
             nxt = choose(logits, *sampler) if not bool(force.all()) else torch.full((B,), self.end, device=dev)
             nxt = torch.where(force, self.end, nxt)
             nxt = torch.where(done, self.pad, nxt)

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from party.evaluation import retrievers
-from party.methods.humantomato.tma_train import FORMAT, TextFeatures, frame_mask, load_tma
+from party.methods.humantomato.tma_train import FORMAT, TextFeatures, frame_mask, load_tma, tma_text
 
 
 class TMARetriever(nn.Module):
@@ -47,15 +47,8 @@ class TMARetriever(nn.Module):
 
 
 def load(folder, cfg, ctx, device) -> TMARetriever:
-    from party.text.encoders import build_text_encoder
-
     model, meta = load_tma(folder, map_location="cpu")
-    enc = build_text_encoder(cfg.text)
-    have = getattr(enc, "id", None)
-    if meta.get("text_encoder_id") and have != meta["text_encoder_id"]:
-        raise ValueError(f"{folder}: this TMA read the text encoder {meta['text_encoder_id']!r}; text.* builds "
-                         f"{have!r}. Score with the encoder it trained with, or retrain it (party train_tma)")
-    return TMARetriever(model, meta, TextFeatures(enc, meta["max_text_tokens"])).to(device)
+    return TMARetriever(model, meta, tma_text(folder, meta, cfg.text)).to(device)
 
 
 retrievers.register(FORMAT, load)

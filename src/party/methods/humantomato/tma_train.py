@@ -189,6 +189,18 @@ def load_tma(path: str | Path, map_location="cpu") -> tuple[TMA, dict]:
     return model.eval(), obj["meta"]
 
 
+def tma_text(folder, meta: dict, text_cfg) -> TextFeatures:
+    """The caption features a trained TMA (``folder``, its ``meta``) reads: the text encoder of
+    ``text_cfg``, which must be the one it trained with (checked by id; else a ValueError naming both)."""
+    from party.text.encoders import build_text_encoder
+    enc = build_text_encoder(text_cfg)
+    have = getattr(enc, "id", None)
+    if meta.get("text_encoder_id") and have != meta["text_encoder_id"]:
+        raise ValueError(f"{folder}: this TMA read the text encoder {meta['text_encoder_id']!r}; text.* builds "
+                         f"{have!r}. Use the encoder it trained with, or retrain it (party train_tma)")
+    return TextFeatures(enc, meta["max_text_tokens"])
+
+
 def train_tma(cfg, name: str, out_dir: str | Path, run) -> dict:
     """Train ``tma.models.<name>`` and write ``out_dir`` (module docstring); returns the metrics."""
     from party import tracking
