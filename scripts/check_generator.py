@@ -92,7 +92,8 @@ def main() -> None:
         feats, part_feats = [], []
         for b0 in range(0, len(texts), B):
             codes = trained.codes(torch.as_tensor(emb[b0:b0 + B], dtype=torch.float32),
-                                  {k: v[b0:b0 + B] for k, v in lengths.items()}, gcfg, gen)
+                                  {k: v[b0:b0 + B] for k, v in lengths.items()}, gcfg, gen,
+                                  texts=texts[b0:b0 + B])
             for i in range(len(next(iter(codes.values())))):
                 one = {k: v[i] for k, v in codes.items()}
                 feats.append(trained.decode(one))

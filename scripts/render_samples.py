@@ -77,7 +77,7 @@ def main() -> None:
         trained = load_method(Path(a.generators or cfg.generator.out_dir) / m).bind(ctx)
         windows = trained.meta["windows"]
         lengths = {s: torch.tensor([max(1, len(t) // windows[s]) for t in truth]) for s in trained.streams}
-        codes = trained.codes(emb, lengths, gcfg, torch.Generator().manual_seed(a.seed))
+        codes = trained.codes(emb, lengths, gcfg, torch.Generator().manual_seed(a.seed), texts=captions)
         samples[m] = [recover_from_ric_np(trained.decode({k: v[i] for k, v in codes.items()}), ctx.n_joints)
                       for i in range(len(captions))]
 

@@ -258,3 +258,65 @@ def test_evaluate_refuses_a_generated_run_whose_generator_was_retrained(copy):
                                                         rf"built from.*party generate generator.method={METHOD}"):
         GeneratedSource(run, ctx)
     assert GeneratedSource(run, ctx, allow_mismatch=True).name == METHOD
+
+
+def test_a_tma_text_token_generator_records_its_prior_and_refuses_a_retrained_one(copy, monkeypatch):
+    """generator.methods.<m>.text = tma: the Hierarchical-GPT's text token is the TMA prior's mu_t of
+    the caption. It trains, records the prior (path, digest, text encoder) in its meta, generates from
+    captions (the run and a registry package, which carries the prior), and a retrained prior is refused
+    by generation unless generator.allow_mismatch."""
+    sys.path.insert(0, str(Path(__file__).parent / "evaluation"))
+    from eval_fixtures import FakeTextEncoder
+
+    import party.text.encoders as enc
+    from party.generator.generate import generate_run
+    from party.generator.package import build_package, load_package
+    from party.methods import load_method
+    from party.methods.humantomato.tma import TMA, TMAConfig
+    from party.methods.humantomato.tma_train import save_tma
+    from party.provenance import MismatchError
+    from party.stages import train_generator
+
+    root, cfg = copy
+    monkeypatch.setattr(enc, "build_text_encoder", lambda text_cfg: FakeTextEncoder())
+
+    def write_prior(seed):
+        torch.manual_seed(seed)
+        tma = TMA(TMAConfig(motion_dim=263, text_dim=16, latent_dim=8, layers=1, heads=2, ff=16, dropout=0.0,
+                            max_len=256, vae=True))
+        meta = {"name": "prior", "seed": seed, "text_encoder_id": FakeTextEncoder.id, "max_text_tokens": 8,
+                "feat_dim": 263, "mean": [0.0] * 263, "std": [1.0] * 263}
+        (root / "tma" / "prior").mkdir(parents=True, exist_ok=True)
+        save_tma(root / "tma" / "prior" / "model.pt", tma, meta)
+
+    write_prior(0)
+    entry = {"family": "humantomato", "stream": "holistic", "dim": 16, "layers": 1, "heads": 2, "mlp_ratio": 2,
+             "order": "coarse_first", "text": "tma", "guidance": False, "eta": 0.0, "relax": "gumbel_st",
+             "gumbel_tau": 1.0, "align_tau": 0.1, "filter_threshold": 0.85, "tma_prior": "tma/prior"}
+    c = OmegaConf.merge(cfg, {"generator": {"method": "tomato_tma", "methods": {"tomato_tma": entry}}})
+    train_generator.run(c)
+    trained = load_method(root / "generators" / "tomato_tma")
+    rec = trained.meta["text_prior"]
+    assert trained.reads_captions and rec["path"] == "tma/prior" and rec["text"]["name"] == cfg.text.name
+    assert trained.model.spec.text == "tma" and trained.model.spec.text_dim == 8
+    generate_run(c, "tomato_tma", root / "generated" / "tomato_tma", False)
+    index = json.loads((root / "generated" / "tomato_tma" / "index.json").read_text())
+    assert index["samples"] and index["samples"][0]["caption"] == CAPTION
+
+    build_package(c, "tomato_tma", root / "pkg")                   # the prior travels with the package
+    assert (root / "pkg" / "files" / "text_prior" / "model.pt").is_file()
+    shutil.rmtree(root / "tma")
+    pkg, _, _, _ = load_package(root / "pkg")
+    assert pkg.model.text_source is not None
+    gcfg = OmegaConf.merge(c.generator.generate, {"sampling": "sample"})
+    codes = pkg.codes(torch.zeros(1, 16), {"holistic": torch.tensor([2])}, gcfg, torch.Generator().manual_seed(0),
+                      texts=[CAPTION])
+    assert codes["holistic"][0].shape[0] == 2
+
+    with pytest.raises(FileNotFoundError, match="TMA prior"):
+        generate_run(c, "tomato_tma", root / "generated" / "again", False)
+    write_prior(1)                                                 # a retrained prior
+    with pytest.raises(MismatchError, match="tma/prior/model.pt: the TMA prior"):
+        generate_run(c, "tomato_tma", root / "generated" / "again", False)
+    generate_run(OmegaConf.merge(c, {"generator": {"allow_mismatch": True}}), "tomato_tma",
+                 root / "generated" / "again", False)

@@ -104,7 +104,7 @@ class Generator:
             raise ValueError(f"{len(frames)} lengths for {len(texts)} texts")
         lengths = self.method.frame_lengths(frames)
         emb = self._embed(texts)
-        feats = generate_batches(self.method, emb, lengths, self.gcfg, progress, seed=seed)
+        feats = generate_batches(self.method, emb, lengths, self.gcfg, progress, seed=seed, texts=texts)
         idx = self.ctx.index
         return [Motion(t, f, float(idx.fps), idx.skeleton, int(self.ctx.n_joints)) for t, f in zip(texts, feats)]
 

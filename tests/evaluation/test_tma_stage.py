@@ -118,3 +118,23 @@ def test_a_worker_share_loads_its_own_retrievers_only(tma_run, monkeypatch):
         protocol_inputs(c, share, sc_reference=False)
     assert seen[0] == (["holistic"], {}) and seen[1] == ([], {"tma": "some/folder"})
     assert seen[2][1] == {"tma": "some/folder"}
+
+
+def test_grid_tables_carry_every_retrievers_columns():
+    """A generator grid's table (party gen_ablation) has the evaluators' columns and, for every
+    eval.retrievers model, its Top 1 at both set sizes and its matching distance (TMA-R-Precision
+    and TMA-Matching of Tab. 8 / 19)."""
+    from types import SimpleNamespace
+
+    from party.config import compose
+    from party.evaluation.loading import generation_columns
+    from party.motion.parts import PartLayout
+
+    cfg = compose()
+    ctx = SimpleNamespace(layout=PartLayout.from_config(cfg.dataset.parts, 22))
+    cols = generation_columns(cfg, ctx)
+    assert {"top1", "fid", "arms_top1", "coherence_tc"} <= set(cols)
+    assert [c for c in cols if c.startswith("tma_")] == ["tma_top1", "tma_top1_ci95", "tma_top1_b256",
+                                                         "tma_top1_b256_ci95", "tma_mm_dist", "tma_mm_dist_ci95"]
+    cfg.eval.retrievers = {}
+    assert not [c for c in generation_columns(cfg, ctx) if c.startswith("tma_")]

@@ -248,3 +248,64 @@ def test_relaxations():
     assert torch.allclose(hard, torch.nn.functional.one_hot(hard.argmax(-1), 7).float(), atol=1e-6)
     with pytest.raises(ValueError, match="relax"):
         relax(g, "nope")
+
+
+def tma_text_model(seed=0):
+    """A GPT whose text token is a frozen TMA's mu_t (text: tma), with that TextPrior attached."""
+    from party.methods.humantomato.align import TextPrior
+    torch.manual_seed(9)
+    tma = TMA(TMAConfig(motion_dim=263, text_dim=6, latent_dim=16, layers=1, heads=2, ff=32, dropout=0.1,
+                        max_len=64, vae=True))
+    prior = TextPrior(tma, TextFeatures(StubEncoder(), 8))
+    torch.manual_seed(seed)
+    entry = dict(stream="holistic", dim=16, layers=2, heads=2, mlp_ratio=2, order="coarse_first", guidance=False,
+                 text="tma")
+    spec = HGPTSpec.from_config(dict(dropout=0.0, max_tokens=9, text_norm="none", cond_drop=0.0),
+                                entry, (0, 0, 1), 2, K, 4, prior.dim)
+    m = HierarchicalGPT(spec).eval()
+    m.text_source = prior
+    return m, prior
+
+
+def test_tma_text_token_reads_the_captions_through_the_frozen_prior():
+    m, prior = tma_text_model()
+    b = batch()
+    mu = prior(b["caption"])
+    assert mu.shape == (3, 16)
+    assert torch.equal(prior(list(reversed(b["caption"]))), mu.flip(0))          # per caption, cached
+    want = prior.tma.encode_text(*[t for t in prior.text.tokens(b["caption"][:1])])
+    assert torch.allclose(mu[:1], want, atol=1e-6)
+    logits, _ = m.teacher_forcing(b)
+    other = {**b, "text_emb": torch.randn_like(b["text_emb"])}                   # the platform vector is unread
+    assert torch.equal(m.teacher_forcing(other)[0], logits)
+    swapped = {**b, "caption": ["a person jumps high"] + b["caption"][1:]}
+    diff = (m.teacher_forcing(swapped)[0] - logits).nan_to_num().abs().sum((1, 2))   # -inf END logits: nan
+    assert diff[0] > 0 and diff[1:].eq(0).all()                                   # the caption is read
+    frozen = digest(prior.tma)
+    m.train()
+    m.losses(b)["loss"].backward()
+    assert all(p.grad is None for p in prior.tma.parameters()) and digest(prior.tma) == frozen
+    assert set(m.state_dict()) == set(build().state_dict())        # the prior is no part of the saved model
+    assert m.text.weight.shape == (16, 16)                    # Linear(latent -> dim)
+
+
+def test_tma_text_method_needs_the_captions():
+    from party.methods.humantomato.family import HGPTMethod
+    from party.generator.generate import generate_batches
+    m, prior = tma_text_model()
+    meth = HGPTMethod(m, {"method": "humantomato"}, ["holistic"], 9)
+    assert meth.reads_captions
+    with pytest.raises(ValueError, match="texts"):
+        generate_batches(meth, torch.zeros(3, D_TEXT).numpy(), None, _gcfg(), False)
+    caps = ["a person waves", "a person kicks", "a person sits"]
+    a = meth.codes(torch.zeros(3, D_TEXT), None, _gcfg(), torch.Generator().manual_seed(0), texts=caps)
+    b = meth.codes(torch.randn(3, D_TEXT), None, _gcfg(), torch.Generator().manual_seed(0), texts=caps)
+    assert all(torch.equal(x, y) for x, y in zip(a["holistic"], b["holistic"]))   # the captions decide
+    with pytest.raises(ValueError, match="captions"):
+        meth.codes(torch.zeros(3, D_TEXT), None, _gcfg(), torch.Generator().manual_seed(0))
+
+
+def _gcfg():
+    from omegaconf import OmegaConf
+    return OmegaConf.create(dict(sampling="sample", temperature=1.0, top_k=None, top_p=None, use_cache=True,
+                                 cond_scale=1.0, part_cond_scale=None, min_frames=None, batch_size=2, seed=0))

@@ -178,16 +178,25 @@ GENERATION_COLUMNS = (("{whole}", "top1"), ("{whole}", "top3"), ("{whole}", "fid
                       ("coherence", "sc"))
 
 
-def _generation_keys(layout):
-    """(results key, metric, column name) of every ``GENERATION_COLUMNS`` entry, streams expanded."""
+RETRIEVER_COLUMNS = ("top1", "top1_b{large}", "mm_dist")     # of every eval.retrievers model (e.g. TMA)
+
+
+def _generation_keys(layout, cfg):
+    """(results key, metric, column name) of every ``GENERATION_COLUMNS`` entry, streams expanded,
+    then ``RETRIEVER_COLUMNS`` of every ``eval.retrievers`` model (``<name>_<metric>``)."""
     for stream, metric in GENERATION_COLUMNS:
         for s in (layout.part_streams if stream == "{part}" else [stream.format(whole=layout.whole_stream)]):
             yield s, metric, (metric if s == layout.whole_stream else f"{s}_{metric}")
+    large = int(cfg.eval.large_batch_size)
+    for r in (cfg.eval.get("retrievers") or {}):
+        for metric in RETRIEVER_COLUMNS:
+            metric = metric.format(large=large)
+            yield r, metric, f"{r}_{metric}"
 
 
-def generation_columns(ctx) -> list[str]:
+def generation_columns(cfg, ctx) -> list[str]:
     """Column names of ``generation_scorer`` rows (each with a ``_ci95`` twin)."""
-    return [c for _, _, name in _generation_keys(ctx.layout) for c in (name, f"{name}_ci95")]
+    return [c for _, _, name in _generation_keys(ctx.layout, cfg) for c in (name, f"{name}_ci95")]
 
 
 def generation_scorer(cfg, replications: int):
@@ -216,7 +225,7 @@ def generation_scorer(cfg, replications: int):
         res = run_protocol(protocol, gt, embedders, {}, [src], parts, sc_ref, ctx.n_joints, ctx.layout,
                            progress=False)[src.name]
         row = {}
-        for s, metric, name in _generation_keys(ctx.layout):
+        for s, metric, name in _generation_keys(ctx.layout, cfg):
             stat = res.get(s, {}).get(metric)
             if stat is not None:
                 row[name], row[f"{name}_ci95"] = round(float(stat["mean"]), 4), round(float(stat["ci95"]), 4)

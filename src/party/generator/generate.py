@@ -26,31 +26,43 @@ from tqdm import tqdm
 from party.io import atomic_dir, write_json
 
 
+def _captions(method, texts, n: int) -> dict:
+    """``sample``'s ``texts`` keyword for a method that reads captions (``reads_captions``), else none."""
+    if not getattr(method, "reads_captions", False):
+        return {}
+    if texts is None or len(texts) != n:
+        raise ValueError(f"method {method.method!r} embeds the captions itself: give the {n} texts (texts=)")
+    return {"texts": [str(t) for t in texts]}
+
+
 def generate_batches(method, text_emb: np.ndarray, lengths: Mapping[str, torch.Tensor] | None, gcfg,
-                     progress: bool, seed: int | None = None) -> list[np.ndarray]:
+                     progress: bool, seed: int | None = None, texts=None) -> list[np.ndarray]:
     """Raw features of every row of ``text_emb`` from a bound ``TrainedMethod`` (batches of
-    ``gcfg.batch_size``, one random stream seeded with ``seed``, else ``gcfg.seed``)."""
+    ``gcfg.batch_size``, one random stream seeded with ``seed``, else ``gcfg.seed``); ``texts``:
+    the rows' captions, which a method that ``reads_captions`` needs."""
     gen = torch.Generator().manual_seed(int(gcfg.seed if seed is None else seed))
+    kw = _captions(method, texts, len(text_emb))
     out: list[np.ndarray] = []
     B = gcfg.batch_size
     for s in tqdm(range(0, len(text_emb), B), desc="generate", disable=not progress, unit="batch"):
         c = torch.as_tensor(np.asarray(text_emb[s:s + B]), dtype=torch.float32)
         lb = None if lengths is None else {k: v[s:s + B] for k, v in lengths.items()}
-        out.extend(method.sample(c, lb, gcfg, gen))
+        out.extend(method.sample(c, lb, gcfg, gen, **{k: v[s:s + B] for k, v in kw.items()}))
     return out
 
 
-def generation_ait(method, text_emb: np.ndarray, lengths, gcfg, n: int, warmup: int) -> float:
+def generation_ait(method, text_emb: np.ndarray, lengths, gcfg, n: int, warmup: int, texts=None) -> float:
     """Milliseconds per sample at batch 1 (generation + decoding), averaged over ``n`` samples
     with the evaluation's AIT timer (``party.evaluation.efficiency.measure_ait``)."""
     from party.evaluation.efficiency import measure_ait
 
     gen = torch.Generator().manual_seed(gcfg.seed)
+    kw = _captions(method, texts, len(text_emb))
 
     def one(i: int) -> None:
         c = torch.as_tensor(np.asarray(text_emb[i][None]), dtype=torch.float32)
         lb = None if lengths is None else {k: v[i][None] for k, v in lengths.items()}
-        method.sample(c, lb, gcfg, gen)
+        method.sample(c, lb, gcfg, gen, **{k: v[i:i + 1] for k, v in kw.items()})
 
     return measure_ait(one, range(len(text_emb)), n, warmup)["ait_ms"]
 
@@ -76,10 +88,11 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     trained.bind(ctx, g.tokenizers_dir, allow_mismatch=bool(g.allow_mismatch))
     lengths = trained.gt_lengths(cfg, [cid for cid, _, _ in rows]) if gc.lengths == "gt" else None
     t0 = time.time()
-    feats = generate_batches(trained, emb, lengths, gc, progress)
+    caps = [cap for _, cap, _ in rows]
+    feats = generate_batches(trained, emb, lengths, gc, progress, texts=caps)
     seconds = time.time() - t0
     e = cfg.eval.efficiency
-    ait = generation_ait(trained, emb, lengths, gc, min(e.ait_samples, len(rows)), e.ait_warmup)
+    ait = generation_ait(trained, emb, lengths, gc, min(e.ait_samples, len(rows)), e.ait_warmup, texts=caps)
     counts = trained.param_counts()
     index = {"name": method, "format": "features", "normalized": False, "method": method,
              "family": str(entry.family), **trained.index_fields(entry),

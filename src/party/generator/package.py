@@ -5,6 +5,8 @@
     <package>/generator/              the trained method's files (``party.methods.load_method``)
     <package>/tokenizers/<s>/model.pt the tokenizers that decode its codes (token methods)
     <package>/stats/Mean.npy, Std.npy the dataset's normalisation statistics
+    <package>/files/...               other files it generates with (``TrainedMethod.package_files``:
+                                      e.g. the TMA whose text embedding a Hierarchical-GPT reads)
 
 The tokenizers copied in must be those the method was trained on, checked when the package is
 built and again when it is loaded (``party.provenance``: the digests in ``generator/method.json``;
@@ -55,6 +57,11 @@ def build_package(cfg, method: str, out: Path) -> dict:
     for s in streams:
         (out / "tokenizers" / s).mkdir(parents=True)
         shutil.copy2(Path(trained.meta["tokenizers_dir"]) / s / "model.pt", out / "tokenizers" / s / "model.pt")
+    for name, f in trained.package_files().items():     # e.g. the TMA a text token reads
+        if not Path(f).is_file():
+            raise FileNotFoundError(f"{f}: a file method {method!r} generates with is not there")
+        (out / "files" / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(f, out / "files" / name)
     (out / "stats").mkdir()
     np.save(out / "stats" / "Mean.npy", ctx.normalizer.mean)
     np.save(out / "stats" / "Std.npy", ctx.normalizer.std)
@@ -95,6 +102,8 @@ def load_package(path: str | Path, plugins=(), allow_mismatch: bool = False):
     ctx = DataContext(index, MotionStore(index.root, d["feat_dim"]), Normalizer.load(path / "stats", d["feat_dim"]),
                       PartLayout.from_config(info["parts"], d["n_joints"]), info["parts"])
     trained = provenance.attach(load_method(path / "generator", plugins=plugins), path / "generator")
+    if (path / "files").is_dir():
+        trained.files_dir = str(path / "files")
     trained.bind(ctx, path / "tokenizers", allow_mismatch=allow_mismatch)
     # packages written before text.precision existed embedded in fp32
     text = OmegaConf.create({"precision": "32-true", **info["text"]})

@@ -131,7 +131,7 @@ def train_token_generator(cfg, method: str, out_dir: str | Path, run, family, ca
         meta = {"method": method, "resume_key": key, "streams": list(train_ds.streams),
                 "windows": train_ds.windows, "codebook_sizes": train_ds.codebook_sizes, "text_dim": train_ds.dim,
                 "tokenizers_dir": str(g.tokenizers_dir), "encoder": str(cfg.text.embeddings_dir),
-                provenance.KEY: built_from}
+                provenance.KEY: built_from, **family.extra_meta(cfg, method)}
         figures = _figures(cfg, run, val_ds, family.wrap(model, meta))
         trainer = build_trainer(cfg, max_steps=t.max_steps, logger=tracking.lightning_logger(cfg, run),
                                 callbacks=[AtomicCheckpoint(session.ckpt, t.ckpt_every), *figures, *(callbacks or [])],
@@ -204,7 +204,7 @@ def _figures(cfg, run, val_ds, trained) -> list:
         trained.bind(ctx, g.tokenizers_dir)
 
         def render(model):           # the model trained: the one ``trained`` wraps
-            feats = generate_batches(trained, emb, None, g.generate, progress=False)
+            feats = generate_batches(trained, emb, None, g.generate, progress=False, texts=texts)
             return [recover_from_ric_np(f, ctx.n_joints) for f in feats], texts
         samples = render
     return [TrainingFigures(run, batch, samples, ctx.index.skeleton, ctx.index.fps, g.train.render_max_frames)]

@@ -17,7 +17,9 @@ A **family** (``MethodFamily`` subclass, registered with ``party.methods.registe
 A **trained method** (``TrainedMethod``) is what generation uses: ``bind`` it to the data
 context (normalisation, part layout) and the tokenizers folder where it decodes codes (checked
 against the digests recorded in ``meta["built_from"]`` at training, ``party.provenance``), then
-``sample(text_emb, lengths, gcfg, generator)`` gives raw features (T, D) per row. Lengths are
+``sample(text_emb, lengths, gcfg, generator)`` gives raw features (T, D) per row; a method whose
+``reads_captions`` is true embeds the captions itself and is called with ``texts=`` (the captions
+of the rows) too (``party.generator.generate.generate_batches``). Lengths are
 the method's own business: ``gt_lengths`` (from the ground-truth clips) and ``frame_lengths``
 (from requested frame counts) return a dict of (B,) tensors that the stages slice per batch
 and hand back to ``sample``.
@@ -38,6 +40,10 @@ class TrainedMethod:
     reads_text: ClassVar[bool] = True
     #: the folder it was loaded from (``party.provenance.attach``), None for a model in training
     source: str | None = None
+    #: whether ``sample`` needs the captions themselves (``texts=``) beside their embeddings
+    reads_captions: bool = False
+    #: a registry package's folder of the files ``package_files`` named (``party.generator.package``)
+    files_dir: str | None = None
 
     def __init__(self, meta: Mapping[str, Any]):
         self.meta = dict(meta)
@@ -54,6 +60,11 @@ class TrainedMethod:
         a warning instead of the error)."""
         self.ctx = ctx
         return self
+
+    def package_files(self) -> dict:
+        """Files besides its folder and tokenizers that generation reads ({relative name: path}): a
+        registry package copies them and sets ``files_dir`` to where they are."""
+        return {}
 
     def tokenizer_streams(self, whole_stream: str) -> list[str]:
         """The tokenizers its codes decode with (a registry package copies them); none by default."""
@@ -72,7 +83,8 @@ class TrainedMethod:
     def sample(self, text_emb: torch.Tensor, lengths: Mapping[str, torch.Tensor] | None, gcfg,
                generator: torch.Generator) -> list[np.ndarray]:
         """Raw features (T, D) for every row of ``text_emb`` (B, D_text); ``gcfg`` is
-        ``generator.generate``; ``generator`` the seeded random stream."""
+        ``generator.generate``; ``generator`` the seeded random stream. A method that
+        ``reads_captions`` takes ``texts`` (the B captions) as a keyword too."""
         raise NotImplementedError
 
     def param_counts(self) -> dict[str, int]:

@@ -121,13 +121,13 @@ class TokenMethod(TrainedMethod):
     def frame_lengths(self, frames):
         return frame_code_lengths(frames, {s: self.meta["windows"][s] for s in self.streams}, self.max_tokens)
 
-    def codes(self, text_emb: torch.Tensor, lengths, gcfg, generator: torch.Generator) -> dict:
+    def codes(self, text_emb: torch.Tensor, lengths, gcfg, generator: torch.Generator, texts=None) -> dict:
         return self.model.generate(text_emb, lengths, generator=generator, **sampling_kw(gcfg))
 
-    def sample(self, text_emb, lengths, gcfg, generator) -> list[np.ndarray]:
+    def sample(self, text_emb, lengths, gcfg, generator, texts=None) -> list[np.ndarray]:
         if self.decode is None:
             raise RuntimeError("bind() the method to a data context before sampling")
-        codes = self.codes(text_emb, lengths, gcfg, generator)
+        codes = self.codes(text_emb, lengths, gcfg, generator, texts=texts)
         return [self.decode({k: v[i] for k, v in codes.items()}) for i in range(len(text_emb))]
 
     def param_counts(self) -> dict[str, int]:
@@ -154,6 +154,11 @@ class TokenModelFamily(MethodFamily):
     def train(cls, cfg, method: str, out_dir, run, callbacks=None) -> dict:
         from party.generator.train import train_token_generator
         return train_token_generator(cfg, method, out_dir, run, cls, callbacks)
+
+    @classmethod
+    def extra_meta(cls, cfg, method: str) -> dict:
+        """What the family records in the saved model's meta besides the recipe's (default none)."""
+        return {}
 
     @classmethod
     def save(cls, model, path, meta: dict) -> None:

@@ -62,7 +62,7 @@ def run(cfg, run_) -> list[dict]:
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"gen_ablation-{spec['name']}"})
     score = generation_scorer(cfg, ab.replications)
     ctx = load_context(cfg)
-    columns = ["point", *spec["axes"], "params", "val_loss", *generation_columns(ctx), "steps", "status"]
+    columns = ["point", *spec["axes"], "params", "val_loss", *generation_columns(cfg, ctx), "steps", "status"]
 
     def point(pcfg, p: dict, prun) -> dict:
         home = out / "points" / p["label"]

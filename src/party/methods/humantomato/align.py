@@ -14,6 +14,9 @@ decoder) into raw features, the frozen TMA prior embeds them (mu_m) and the capt
 L_align is the symmetric InfoNCE of ``tma.info_nce`` at temperature ``tau`` with the sentence-
 similarity negative filter. Only the GPT's logits carry gradients: every tokenizer and TMA weight
 is frozen and in eval mode, and none is part of the GPT's state dict.
+
+``TextPrior`` is the same frozen TMA's text encoder as the GPT's text token (``text: tma``; SPEC §4
+"TEXT token": Linear(latent -> dim) of the caption's mu_t), each caption encoded once.
 """
 from __future__ import annotations
 
@@ -40,6 +43,42 @@ def relax(logits: torch.Tensor, how: str, tau: float = 1.0) -> torch.Tensor:
         return soft
     hard = F.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
     return hard + soft - soft.detach()
+
+
+class TextPrior:
+    """Captions -> the frozen TMA text embedding mu_t (B, latent), cached per caption on the CPU.
+    Not an ``nn.Module``: no part of the GPT's state dict or parameters."""
+
+    def __init__(self, tma, text):
+        self.tma, self.text = tma.eval(), text
+        for p in self.tma.parameters():
+            p.requires_grad_(False)
+        self._mu: dict[str, torch.Tensor] = {}
+
+    @classmethod
+    def load(cls, folder, text_cfg) -> "TextPrior":
+        """The TMA of ``folder`` (``model.pt``) with the text encoder of ``text_cfg`` (checked by id)."""
+        from party.methods.humantomato.tma_train import load_tma, tma_text
+        tma, meta = load_tma(folder)
+        return cls(tma, tma_text(folder, meta, text_cfg))
+
+    @property
+    def dim(self) -> int:
+        return int(self.tma.cfg.latent_dim)
+
+    @torch.no_grad()
+    def __call__(self, captions: Sequence[str], device=None) -> torch.Tensor:
+        captions = [str(c) for c in captions]
+        new = list(dict.fromkeys(c for c in captions if c not in self._mu))
+        if new:
+            dev = next(self.tma.parameters()).device
+            for s in range(0, len(new), 256):
+                chunk = new[s:s + 256]
+                tok, mask = self.text.tokens(chunk)
+                mu = self.tma.encode_text(tok.to(dev), mask.to(dev)).float().cpu()
+                self._mu.update(zip(chunk, mu))
+        out = torch.stack([self._mu[c] for c in captions])
+        return out if device is None else out.to(device)
 
 
 class Aligner:

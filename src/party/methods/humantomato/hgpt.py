@@ -6,7 +6,8 @@ the sequence (``order: coarse_first``, Eq. 4: the body codes of a timestamp befo
 
     [TEXT, c_0, c_1, a_0, c_2, c_3, a_1, ..., c_{2n-2}, c_{2n-1}, a_{n-1}, END]
 
-- position 0 is the text token (Linear(text_dim -> dim) of the caption vector); position p > 0
+- position 0 is the text token (Linear(text_dim -> dim) of the caption vector: the platform
+  encoder's, or with ``text: tma`` the frozen TMA prior's mu_t, ``align.TextPrior``); position p > 0
   embeds the code emitted at p - 1: a table per *group* (``slot_groups``: the slots sharing one
   codebook, e.g. H²VQ's two core slots; K codes + END + PAD each), plus a slot-type embedding
   (which slot of the row that code filled), plus a learned absolute position;
@@ -43,6 +44,7 @@ from party.generator.sampling import choose
 #: the ``generator.model`` keys a Hierarchical-GPT reads (the rest of its spec is the method's entry)
 SHARED_MODEL_KEYS = ("dropout", "max_tokens", "text_norm", "cond_drop")
 ORDERS = ("coarse_first", "fine_first")
+TEXTS = ("platform", "tma")
 
 
 @dataclass(frozen=True)
@@ -63,12 +65,14 @@ class HGPTSpec:
     codebook_size: int
     window: int                     # frames per row
     text_dim: int
+    text: str = "platform"          # the text token: the platform's caption vector, or "tma": TMA's mu_t
 
     @classmethod
     def from_config(cls, model_cfg: Mapping, method_cfg: Mapping, slot_groups: Sequence[int], fine_slot: int,
                     codebook_size: int, window: int, text_dim: int) -> "HGPTSpec":
         own = ("stream", "dim", "layers", "heads", "mlp_ratio", "order", "guidance")
-        return cls(**{k: method_cfg[k] for k in own}, **{k: model_cfg[k] for k in SHARED_MODEL_KEYS},
+        return cls(**{k: method_cfg[k] for k in own}, text=str(method_cfg.get("text", "platform")),
+                   **{k: model_cfg[k] for k in SHARED_MODEL_KEYS},
                    slot_groups=[int(g) for g in slot_groups], fine_slot=int(fine_slot),
                    codebook_size=int(codebook_size), window=int(window), text_dim=int(text_dim))
 
@@ -78,6 +82,8 @@ class HGPTSpec:
             raise ValueError(f"slot_groups {self.slot_groups}: one group id per slot, numbered 0..G-1")
         if not 0 <= self.fine_slot < self.slots:
             raise ValueError(f"fine_slot {self.fine_slot} is not a slot of a {self.slots}-slot row")
+        if self.text not in TEXTS:
+            raise ValueError(f"text must be one of {TEXTS}, got {self.text!r}")
         if self.order not in ORDERS:
             raise ValueError(f"order must be one of {ORDERS}, got {self.order!r}")
         if self.dim % self.heads:
@@ -136,6 +142,7 @@ class HierarchicalGPT(TextNorm, nn.Module):
         self.register_buffer("no_end", end_ok, persistent=False)
         self.init_text_norm()
         self.aligner = None          # an ``align.Aligner`` for training with eta > 0 (no module: never saved)
+        self.text_source = None      # text: tma: an ``align.TextPrior`` (captions -> mu_t; no module: never saved)
 
     # ------------------------------------------------------------------ layout
     def flatten(self, codes: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -176,6 +183,15 @@ class HierarchicalGPT(TextNorm, nn.Module):
             c = c * keep[:, None].to(c.dtype)
         return c
 
+    def text_input(self, batch: Mapping) -> torch.Tensor:
+        """The text vectors of a batch: its caption embeddings, or (``text: tma``) the attached
+        ``text_source``'s mu_t of its captions."""
+        if self.spec.text == "platform":
+            return batch["text_emb"]
+        if self.text_source is None:
+            raise RuntimeError("text: tma needs the TMA text prior attached (model.text_source)")
+        return self.text_source(batch["caption"], batch["text_emb"].device)
+
     def teacher_forcing(self, batch: Mapping) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits (B, L, K + 1) and targets (B, L) (PAD past END) of a batch of the token dataset
         (``codes``/``lengths`` of ``stream``: (B, n, Q) rows and (B,) row counts)."""
@@ -189,7 +205,7 @@ class HierarchicalGPT(TextNorm, nn.Module):
         valid = torch.arange(codes.shape[1], device=codes.device)[None] < rows.to(codes.device)[:, None]
         if bool(((codes < 0) | (codes >= self.spec.codebook_size))[valid].any()):
             raise ValueError(f"codes of {s} must lie in [0, {self.spec.codebook_size}) within the lengths")
-        c = self._condition(batch["text_emb"])
+        c = self._condition(self.text_input(batch))
         y = self.flatten(codes, rows).to(c.device)
         x = torch.cat([self.text(c)[:, None], self.embed(y[:, :-1], 0)], 1)
         return self.logits(self.net(x), 0), y
@@ -230,8 +246,8 @@ class HierarchicalGPT(TextNorm, nn.Module):
                  top_p: float | None = None, generator: torch.Generator | None = None,
                  use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None,
                  part_cond_scale: float | None = None) -> dict[str, list[torch.Tensor]]:
-        """Rows (n_b, Q) per sample in the store's order. ``lengths`` {stream: (B,)} target row counts
-        (END suppressed before, forced at); without, END is sampled (not before ``min_frames``), at
+        """Rows (n_b, Q) per sample in the store's order ((n_b,) codes over a one-level store).
+        ``lengths`` {stream: (B,)} target row counts (END suppressed before, forced at); without, END is sampled (not before ``min_frames``), at
         the latest after ``max_rows`` rows. ``cond_scale`` applies with ``guidance: true`` only.
         ``use_cache=False`` recomputes the whole prefix every step (the reference the cache must equal)."""
         scale = float(cond_scale) if self.spec.guidance else 1.0
@@ -296,7 +312,8 @@ class HierarchicalGPT(TextNorm, nn.Module):
         for b in range(B):
             seq = out[b]
             n = int((seq < self.end).long().cumprod(0).sum()) // Q
-            rows.append(seq[:n * Q].view(n, Q)[:, self.inv_perm].clone())
+            r = seq[:n * Q].view(n, Q)[:, self.inv_perm]
+            rows.append((r[:, 0] if Q == 1 else r).clone())      # a one-level store's codes are (n,)
         return {spec.stream: rows}
 
 
