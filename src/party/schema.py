@@ -153,6 +153,8 @@ class PartTables:                           # conf/dataset/parts/<skeleton>.yaml
     groups: Dict[str, Dict[str, ChannelGroup]] = field(default_factory=dict)
     # other names of a stream: a tokenizer trained under the alias reads that stream's channels
     aliases: Dict[str, str] = field(default_factory=dict)
+    # streams of one channel group each (name -> "<table>.<group>" of groups): a tokenizer per group
+    group_streams: Dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -1175,7 +1177,7 @@ NAME_KEYS: tuple[tuple[str, str], ...] = (
     ("dataset.parts.streams", "items"), ("dataset.parts.parts", "keys"),
     ("dataset.parts.stream_parts", "keys"), ("dataset.parts.stream_parts", "value items"),
     ("dataset.parts.coherence", "keys"), ("dataset.parts.part_tokenizers", "items"),
-    ("dataset.parts.aliases", "keys"),
+    ("dataset.parts.aliases", "keys"), ("dataset.parts.group_streams", "keys"),
     ("vqvae.stream", "value"), ("vqvae.streams", "items"), ("vqvae.part_streams", "items"),
     ("vqvae.extra_streams", "items"), ("vqvae.tokenizers", "keys"),
     ("evaluator.stream", "value"), ("evaluator.streams", "items"), ("tma.which", "value"), ("tma.models", "keys"),

@@ -148,3 +148,57 @@ def test_the_quantizer_grid_builds_every_point_at_its_bit_rate():
         bits[p["label"]] = bits_per_frame(m)
     assert bits == pytest.approx({"vq512": 2.25, "vq1024": 2.5, "rvq512x2": 4.5, "h2vq512_eq": 4.5,
                                   "h2vq512": 6.75, "rvq512x3": 6.75})
+
+
+def test_group_streams_are_the_disjoint_groups_and_merge_back_exactly():
+    """dataset.parts.group_streams (HumanTOMATO's separate modelling): a group stream reads its group's
+    channels (group_index), its joints root first, the groups' slices merge back into the vector bit for
+    bit, and a reference to no group is refused."""
+    import yaml
+
+    from party.motion.parts import PartLayout, group_index
+
+    pc = yaml.safe_load(open("conf/dataset/parts/t2m.yaml"))
+    lay = PartLayout.from_config(pc, 22)
+    want = group_index(22, pc["groups"]["core_arms"])
+    assert np.array_equal(lay.index("tomato_core"), want["core"]) and len(lay.index("tomato_arms")) == 96
+    assert lay.stream_joints("tomato_arms") == [0, 13, 16, 18, 20, 14, 17, 19, 21]
+    assert lay.stream_joints("tomato_core")[0] == 0 and 13 not in lay.stream_joints("tomato_core")
+    x = np.random.default_rng(0).standard_normal((5, 263)).astype(np.float32)
+    back = lay.merge({s: lay.slice(x, s) for s in ("tomato_core", "tomato_arms")})
+    assert np.array_equal(back, x)
+    with pytest.raises(ValueError, match="core_arms.hands"):
+        PartLayout.from_config({**pc, "group_streams": {"x": "core_arms.hands"}}, 22)
+    with pytest.raises(ValueError, match="already a stream"):
+        PartLayout.from_config({**pc, "group_streams": {"arms": "core_arms.arms"}}, 22)
+
+
+def test_a_group_stream_tokenizer_trains_and_decodes_into_its_channels(tiny_prepared, tmp_path):
+    """train_vqvae on a group stream (vq, as experiment=tomato_separate declares): it reads the group's
+    96 channels, and the two groups' decoded codes compose a whole vector (TokenDecoder, as the separate
+    method's samples do)."""
+    from party.data.context import load_context
+    from party.methods.tokens import TokenDecoder
+    from party.stages import extract_tokens
+    from party.tokenizers import TokenStore, load_tokenizer
+    from party.tokenizers.train import train_tokenizer
+    from tok_helpers import tiny_cfg
+
+    over = {f"vqvae.tokenizers.{s}.{k}": v for s in ("tomato_core", "tomato_arms")
+            for k, v in (("family", "vq"), ("window", 4), ("codebook_size", 8), ("code_dim", 8),
+                         ("lte.enabled", "false"), ("gte.enabled", "false"))}
+    c = tiny_cfg(tmp_path, tiny_prepared, **over, **{"vqvae.streams": "[]",
+                                                    "vqvae.extra_streams": "[tomato_core,tomato_arms]"})
+    for s in ("tomato_core", "tomato_arms"):
+        train_tokenizer(c, s, tmp_path / "tokenizers" / s)
+    tok = load_tokenizer(tmp_path / "tokenizers/tomato_arms")
+    assert tok.family == "vq" and len(tok.meta["feat_index"]) == 96
+    extract_tokens.run(c)
+    stores = {s: TokenStore.open(tmp_path / "tokens" / s) for s in ("tomato_core", "tomato_arms")}
+    ctx = load_context(c)
+    dec = TokenDecoder(tmp_path / "tokenizers", ctx, ["tomato_core", "tomato_arms"])
+    codes = {s: torch.as_tensor(np.asarray(st.codes[:6])).long() for s, st in stores.items()}
+    feats = dec(codes)
+    assert feats.shape == (24, 263) and np.isfinite(feats).all()
+    arms = load_tokenizer(tmp_path / "tokenizers/tomato_arms").detokenize(codes["tomato_arms"]).numpy()
+    assert np.allclose(feats[:, ctx.layout.index("tomato_arms")], arms, atol=1e-6)

@@ -7,6 +7,9 @@ D-dim feature vector:
 - root: root data (4) + local velocity of joint 0 (3);
 - a limb/backbone part: per joint ric (3) + rot6d (6) + local vel (3), plus the
   part's foot contacts for a leg;
+- a group stream (``dataset.parts.group_streams``: name -> ``<table>.<group>`` of
+  ``dataset.parts.groups``) is one disjoint channel group (``group_index``): HumanTOMATO's
+  per-group tokenizers, whose decoded groups ``merge`` back exactly;
 - a part stream (one with members in ``dataset.parts.stream_parts``: arms, legs)
   is the root part followed by the union of its parts' features (a joint shared
   by two parts, such as spine3 in both arms, appears once); the one stream with
@@ -43,7 +46,8 @@ class PartLayout:
 
     def __init__(self, n_joints: int, parts: Mapping[str, Mapping], streams: Sequence[str],
                  stream_parts: Mapping[str, Sequence[str]], coherence: Mapping[str, Sequence[int]],
-                 aliases: Mapping[str, str] | None = None):
+                 aliases: Mapping[str, str] | None = None, group_streams: Mapping[str, str] | None = None,
+                 groups: Mapping[str, Mapping] | None = None):
         self.n_joints = n_joints
         self.feat_dim = 12 * n_joints - 1
         sl = feature_slices(n_joints)
@@ -91,13 +95,26 @@ class PartLayout:
             if s not in self.streams or a in self.stream_index or a in self.part_index:
                 raise ValueError(f"dataset.parts.aliases: {a!r} -> {s!r}: an alias names a stream ({self.streams}) "
                                  f"and is neither a stream nor a part itself")
+        # one channel group each (no stream of the generation order, no evaluator)
+        self.group_index: dict[str, np.ndarray] = {}
+        for name, ref in (group_streams or {}).items():
+            table, _, group = str(ref).partition(".")
+            if not (groups or {}).get(table) or group not in groups[table]:
+                raise ValueError(f"dataset.parts.group_streams: {name!r} -> {ref!r} is not <table>.<group> of "
+                                 f"dataset.parts.groups ({ {t: list(g) for t, g in (groups or {}).items()} })")
+            if name in self.stream_index or name in self.part_index or name in self.aliases:
+                raise ValueError(f"dataset.parts.group_streams: {name!r} is already a stream, part or alias")
+            self.group_index[name] = group_index(n_joints, groups[table])[group]
+            # root first, as a part alone: without the root channels its joints are recovered root-relative
+            self._stream_joints[name] = [0] + [int(j) for j in groups[table][group]["joints"] if int(j) != 0]
 
     @classmethod
     def from_config(cls, parts_cfg: Mapping, n_joints: int) -> "PartLayout":
         """From ``dataset.parts`` (``parts``, ``streams``, ``stream_parts``, ``coherence``; when given,
         ``part_tokenizers`` must be the root and every part, once each)."""
         layout = cls(n_joints, parts_cfg["parts"], parts_cfg["streams"], parts_cfg["stream_parts"],
-                     parts_cfg["coherence"], parts_cfg.get("aliases"))
+                     parts_cfg["coherence"], parts_cfg.get("aliases"), parts_cfg.get("group_streams"),
+                     parts_cfg.get("groups"))
         if "part_tokenizers" in parts_cfg:
             pt = [str(p) for p in parts_cfg["part_tokenizers"]]
             if sorted(pt) != sorted(layout.part_index) or len(set(pt)) != len(pt):
@@ -112,6 +129,8 @@ class PartLayout:
             return self.stream_index[name]
         if name in self.part_index:
             return self.part_index[name]
+        if name in self.group_index:
+            return self.group_index[name]
         raise KeyError(f"unknown part/stream {name!r}; streams {list(self.stream_index)}, "
                        f"parts {list(self.part_index)}, aliases {list(self.aliases)}")
 
