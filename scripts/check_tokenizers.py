@@ -4,8 +4,8 @@
                                                  [--out data/tokenizers/side_checks.json]
 
 For every stream's tokenizer: tokenize and decode the whole single-segment clips whose
-arms wave with one named hand (holistic, arms, left_arm, right_arm) or whose legs kick with one
-named foot (holistic, legs, left_leg, right_leg); a part stream's reconstruction is put back into
+arms wave with one named hand (holistic, arms, left_arm, right_arm, tomato, tomato_arms) or whose
+legs kick with one named foot (holistic, legs, left_leg, right_leg, tomato, tomato_core); a part stream's reconstruction is put back into
 the ground-truth body. ``parts``: the body composed from the tokenizers of every part alone
 (``dataset.parts.part_tokenizers``, the ParCo-like method's), as its generations are.
 Prints, per split, how many reconstructions keep the named side (``party.data.synthetic
@@ -26,7 +26,9 @@ from party.motion.features import recover_from_ric
 from party.tokenizers import load_tokenizer
 
 CHECKS = {"holistic": ("wave", "kick"), "arms": ("wave",), "legs": ("kick",), "left_arm": ("wave",),
-          "right_arm": ("wave",), "left_leg": ("kick",), "right_leg": ("kick",), "parts": ("wave", "kick")}
+          "right_arm": ("wave",), "left_leg": ("kick",), "right_leg": ("kick",), "parts": ("wave", "kick"),
+          # HumanTOMATO's: the H2VQ of the whole vector, the per-group tokenizers of experiment=tomato_separate
+          "tomato": ("wave", "kick"), "tomato_core": ("kick",), "tomato_arms": ("wave",)}
 COMPOSED = "parts"
 
 

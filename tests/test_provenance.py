@@ -320,3 +320,36 @@ def test_a_tma_text_token_generator_records_its_prior_and_refuses_a_retrained_on
         generate_run(c, "tomato_tma", root / "generated" / "again", False)
     generate_run(OmegaConf.merge(c, {"generator": {"allow_mismatch": True}}), "tomato_tma",
                  root / "generated" / "again", False)
+
+
+def test_separate_group_models_train_and_generate_whole_vectors(copy):
+    """experiment=tomato_separate's wiring (HumanTOMATO Tab. 5 / 22): a tokenizer per channel group
+    (dataset.parts.group_streams), their token stores, and a ParCo-like method with coordination off
+    over the two groups train and generate; every sample is a whole 263-d vector whose arms channels are
+    the arms tokenizer's decode."""
+    from party.generator.generate import generate_run
+    from party.methods import load_method
+    from party.stages import extract_tokens, train_generator
+    from party.tokenizers import load_tokenizer
+
+    root, cfg = copy
+    groups = ["tomato_core", "tomato_arms"]
+    tok = {"family": "vq", "window": 4, "codebook_size": 8, "code_dim": 8, "lte": {"enabled": False},
+           "gte": {"enabled": False}}
+    c = OmegaConf.merge(cfg, {"vqvae": {"extra_streams": groups, "tokenizers": {g: tok for g in groups}}})
+    make_tokenizers(c, root / "tokenizers", seed=0, streams=groups)
+    extract_tokens.run(OmegaConf.merge(c, {"vqvae": {"streams": [], "part_streams": []}}))
+    entry = {"family": "parco", "streams": groups, "end_stream": "tomato_core", "dim": 16, "layers": 1,
+             "heads": 2, "coordinate": False, "coord_layers": 1, "coord_hidden": 8}
+    c = OmegaConf.merge(c, {"generator": {"method": "tomato_separate", "methods": {"tomato_separate": entry}}})
+    train_generator.run(c)
+    trained = load_method(root / "generators" / "tomato_separate")
+    assert trained.streams == groups and trained.tokenizer_streams("holistic") == groups
+    generate_run(c, "tomato_separate", root / "generated" / "tomato_separate", False)
+    index = json.loads((root / "generated" / "tomato_separate" / "index.json").read_text())
+    x = np.load(root / "generated" / "tomato_separate" / index["samples"][0]["file"])
+    assert x.shape[1] == 263 and np.isfinite(x).all() and len(x) % 4 == 0
+    from party.data.context import load_context
+    lay = load_context(c).layout
+    arms = load_tokenizer(root / "tokenizers" / "tomato_arms")
+    assert len(arms.meta["feat_index"]) == 96 and np.array_equal(arms.meta["feat_index"], lay.index("tomato_arms"))

@@ -436,6 +436,7 @@ class VQTrain:                               # _off_step: not in the resume key
 @dataclass
 class VQMetrics:
     unit_scale: float = MISSING
+    groups: Optional[str] = None            # a table of dataset.parts.groups: errors per group too
 
 
 @dataclass

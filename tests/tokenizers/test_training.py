@@ -17,7 +17,7 @@ from party.tokenizers.config import stream_config
 from party.tokenizers.data import BucketDataset, bucket_loader, decode_sequences, eval_sequences
 from party.tokenizers.lit import VQVAELit
 from party.tokenizers.tokens import TokenStore
-from party.tokenizers.train import train_tokenizer
+from party.tokenizers.train import metric_groups, train_tokenizer
 from party.tokenizers.vqvae import load_tokenizer
 from party.training import hold_resume_dir
 
@@ -150,8 +150,9 @@ def test_validation_metrics_ignore_filler_rows(trained):
     data = load_stream_data(cfg, "holistic")
     seqs, keys = eval_sequences(data, "val")
     res = []
+    groups = metric_groups(cfg, data.meta()["stream_joints"])
     for bs in (2, 5, 64):
-        lit = VQVAELit(tok, stream_config(cfg.vqvae, "holistic"), cfg.vqvae.metrics)
+        lit = VQVAELit(tok, stream_config(cfg.vqvae, "holistic"), cfg.vqvae.metrics, groups)
         L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False
                   ).validate(lit, bucket_loader(BucketDataset(seqs, keys, tok.window, "crop", bs)), verbose=False)
         res.append(lit.val_results)
@@ -160,6 +161,30 @@ def test_validation_metrics_ignore_filler_rows(trained):
         assert r["val/frames"] == frames
         assert r["val/mpjpe_mm"] == pytest.approx(res[0]["val/mpjpe_mm"], rel=1e-5)
         assert r["val/code_usage"] == res[0]["val/code_usage"]
+        for k in ("pa_mpjpe", "accel", "mpjpe_core", "mpjpe_arms", "pa_mpjpe_arms", "accel_core"):
+            assert r[f"val/{k}_mm"] == pytest.approx(res[0][f"val/{k}_mm"], rel=1e-5), k
+    r = res[0]
+    assert 0 < r["val/pa_mpjpe_mm"] < r["val/mpjpe_mm"] and r["val/accel_mm"] > 0
+    # the groups partition the 22 joints (core 14, arms 8): MPJPE is their joint-weighted mean
+    assert 14 * r["val/mpjpe_core_mm"] + 8 * r["val/mpjpe_arms_mm"] == pytest.approx(22 * r["val/mpjpe_mm"], rel=1e-4)
+
+
+def test_procrustes_errors_undo_a_similarity_and_measure_the_rest():
+    """PA-MPJPE's alignment (party.tokenizers.lit.procrustes_errors): a rotated, scaled and shifted copy
+    of each frame has zero error (reflections are not allowed), noise keeps an error below plain MPJPE."""
+    from party.tokenizers.lit import procrustes_errors
+
+    g = torch.Generator().manual_seed(0)
+    gt = torch.randn(4, 6, 22, 3, generator=g, dtype=torch.float64)
+    q, _ = torch.linalg.qr(torch.randn(4, 6, 3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.linalg.det(q))[..., None, None]                # proper rotations
+    pred = 1.7 * gt @ q + torch.randn(4, 6, 1, 3, generator=g, dtype=torch.float64)
+    assert procrustes_errors(pred, gt).abs().max() < 1e-9
+    mirrored = gt * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)     # a reflection is not a rotation
+    assert procrustes_errors(mirrored, gt).mean() > 0.1
+    noisy = gt + 0.1 * torch.randn(gt.shape, generator=g, dtype=torch.float64)
+    e = procrustes_errors(noisy, gt)
+    assert 0 < e.mean() < (noisy - gt).norm(dim=-1).mean()
 
 
 def test_token_store_errors(tmp_path):
@@ -227,7 +252,11 @@ def test_ablation_runner_table(tiny_prepared, tmp_path):
     assert [r["point"] for r in rows] == ["baseline", "ours"]
     assert [(r["lte"], r["gte"]) for r in rows] == [(False, False), (True, True)]
     assert rows[0]["params"] < rows[1]["params"] and all(r["steps"] == 2 for r in rows)
+    for r in rows:      # PA-MPJPE, Accel, and all three per group (HumanTOMATO's All / Body / Hand)
+        assert all(r[f"{e}_{g}_mm"] > 0 for e in ("mpjpe", "pa_mpjpe", "accel") for g in ("core", "arms"))
+        assert 0 < r["pa_mpjpe_mm"] < r["mpjpe_mm"] and r["accel_mm"] > 0
     md = (tmp_path / "abl" / "mini" / "table.md").read_text()
+    assert "pa_mpjpe_arms_mm" in md
     assert "| baseline |" in md and "dvc exp run --queue train_vqvae@holistic" in md
     assert (tmp_path / "abl" / "mini" / "table.csv").read_text().count("\n") == 3
     bad = tmp_path / "bad.yaml"

@@ -37,7 +37,16 @@ from party.sweep import expand, load_sweep, run_grid
 from party.tokenizers.train import train_tokenizer
 
 COLUMNS = ["point", "family", "window", "lte", "gte", "levels", "bits_per_frame", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
-           "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "status"]
+           "pa_mpjpe_mm", "accel_mm", "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "status"]
+ERRORS = ("mpjpe", "pa_mpjpe", "accel")       # per group of vqvae.metrics.groups, after accel_mm
+
+
+def columns(cfg) -> list[str]:
+    """``COLUMNS`` with MPJPE, PA-MPJPE and Accel of every group of ``vqvae.metrics.groups``."""
+    table = cfg.vqvae.metrics.get("groups")
+    groups = list(((cfg.dataset.parts.get("groups") or {}).get(table) or {}) if table else [])
+    at = COLUMNS.index("accel_mm") + 1
+    return COLUMNS[:at] + [f"{e}_{g}_mm" for g in groups for e in ERRORS] + COLUMNS[at:]
 _FID_SETUP = ("eval", "evaluator", "dataset", "paths")
 
 
@@ -62,6 +71,9 @@ def _notes(spec: dict) -> str:
             "rates are not compared on equal terms.\n"
             "MPJPE: validation set, mm, root-aligned per frame (global: without alignment); "
             "mpjpe_ratio: over the mean-pose baseline's (status `collapsed`: not clearly below it).\n"
+            "pa_mpjpe: after a per-frame similarity Procrustes alignment; accel: acceleration error of the "
+            "global joint positions, mm per frame^2; <metric>_<group>: over that group's joints "
+            "(vqvae.metrics.groups).\n"
             "Reconstruction FID: the evaluate protocol on `eval.split` with the stream's evaluator "
             "(empty: no evaluator trained).\n\n"
             "Same grid as queued DVC experiments (then `dvc queue start -j 1`):\n\n```\n"
@@ -80,6 +92,7 @@ def run(cfg, run_) -> list[dict]:
     stream = spec["stream"]
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"vq_ablation-{spec['name']}"})
     scorers: dict[str, object] = {}
+    cols = columns(cfg)
 
     def point(pcfg, p: dict, prun) -> dict:
         m = train_tokenizer(pcfg, stream, out / "points" / p["label"], prun)
@@ -93,11 +106,13 @@ def run(cfg, run_) -> list[dict]:
                 "mpjpe_mm": round(m["val/mpjpe_mm"], 2),
                 "mpjpe_global_mm": round(m["val/mpjpe_global_mm"], 2),
                 "mpjpe_ratio": round(m["diagnostics"]["mpjpe_ratio"], 3),
+                **{k.split("/", 1)[1]: round(float(x), 2) for k, x in m.items()
+                   if k.startswith("val/") and k.endswith("_mm") and k.split("/", 1)[1] in cols},
                 **_fid(scorers, pcfg, stream, out / "points" / p["label"]),
                 "perplexity": round(m["val/perplexity"], 1),
                 "code_usage": round(m["val/code_usage"], 3), "steps": m["step"],
                 "status": m["diagnostics"]["status"]}
 
-    rows = run_grid(cfg, spec, "train_vqvae", point, out, COLUMNS, _notes(spec))
+    rows = run_grid(cfg, spec, "train_vqvae", point, out, cols, _notes(spec))
     print((out / "table.md").read_text())
     return rows

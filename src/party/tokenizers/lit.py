@@ -52,10 +52,29 @@ def resets_total(model: torch.nn.Module) -> int:
     return int(sum(int(m.resets_total) for m in model.modules() if isinstance(m, EMAQuantizer)))
 
 
+def procrustes_errors(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Per-joint error (..., J) after the similarity Procrustes alignment (rotation, scale,
+    translation) of each frame's ``pred`` (..., J, 3) onto ``gt`` (Gower 1975; PA-MPJPE)."""
+    p, g = pred.double(), gt.double()
+    mp, mg = p.mean(-2, keepdim=True), g.mean(-2, keepdim=True)
+    x, y = p - mp, g - mg
+    u, sv, vt = torch.linalg.svd(x.transpose(-1, -2) @ y)
+    d = torch.sign(torch.linalg.det(vt.transpose(-1, -2) @ u.transpose(-1, -2)))
+    fix = torch.ones_like(sv)
+    fix[..., -1] = d
+    rot = vt.transpose(-1, -2) @ (fix[..., :, None] * u.transpose(-1, -2))       # V diag(1, 1, d) U^T
+    scale = (sv * fix).sum(-1) / x.pow(2).sum((-1, -2)).clamp_min(1e-12)
+    aligned = scale[..., None, None] * (x @ rot.transpose(-1, -2)) + mg
+    return (aligned - g).norm(dim=-1)
+
+
 class VQVAELit(L.LightningModule):
-    def __init__(self, tok: Tokenizer, scfg: dict, metrics_cfg):
+    def __init__(self, tok: Tokenizer, scfg: dict, metrics_cfg, groups: dict | None = None):
+        """``groups`` {name: positions in the stream's joints}: reconstruction errors per joint group
+        too (``vqvae.metrics.groups``: HumanTOMATO's Body / Hand columns as core / arms)."""
         super().__init__()
         self.tok = tok
+        self.groups = {str(k): torch.as_tensor(list(v), dtype=torch.long) for k, v in (groups or {}).items() if len(v)}
         self.loss_cfg, self.optim_cfg = scfg["loss"], scfg["optim"]
         self._pen = _penalty(self.loss_cfg["feat_loss"])   # bad value: fails at construction
         self.unit_scale = float(metrics_cfg["unit_scale"])
@@ -130,7 +149,8 @@ class VQVAELit(L.LightningModule):
     def on_validation_epoch_start(self) -> None:
         K, Q = int(self.model.codebook_size), int(self.model.levels)
         self._val = {"err": 0.0, "err_g": 0.0, "rec": 0.0, "frames": 0.0, "err_mean": 0.0,
-                     "hist": torch.zeros(Q, K, dtype=torch.float64, device=self.device)}
+                     "hist": torch.zeros(Q, K, dtype=torch.float64, device=self.device),
+                     "sums": {}}          # {metric: sum over frames}: PA-MPJPE, Accel, per group
         self.val_outputs = {}
 
     def validation_step(self, batch, batch_idx):
@@ -154,6 +174,7 @@ class VQVAELit(L.LightningModule):
         v["err_g"] += float((err_g * m).sum())
         v["rec"] += float(((jh - jg).abs().mean((-1, -2)) * m).sum())
         v["frames"] += float(m.sum())
+        self._pose_errors(jh, jg, m)
         idx = out["idx"][out["node_mask"]]
         idx = idx[:, None] if idx.dim() == 1 else idx                  # (N, Q): one histogram per level
         K = v["hist"].shape[1]
@@ -164,12 +185,39 @@ class VQVAELit(L.LightningModule):
                 valid = int(out["frame_mask"][k].sum())
                 self.val_outputs[key] = (out["idx"][k, :n].cpu(), out["recon"][k, :valid].cpu())
 
+    def _pose_errors(self, jh: torch.Tensor, jg: torch.Tensor, m: torch.Tensor) -> None:
+        """Add PA-MPJPE, the acceleration error (global positions, per frame squared) and the
+        per-group MPJPE / PA-MPJPE / Accel of a validation batch (joints (B, T, J, 3), frame mask m)."""
+        if jh.shape[-2] < 2:           # the root part alone has no pose
+            return
+        jh, jg, m = jh.double(), jg.double(), m.double()
+        per = {"mpjpe": ((jh - jh[..., :1, :]) - (jg - jg[..., :1, :])).norm(dim=-1),
+               "pa_mpjpe": procrustes_errors(jh, jg)}
+        acc = ((jh[:, 2:] - 2 * jh[:, 1:-1] + jh[:, :-2]) - (jg[:, 2:] - 2 * jg[:, 1:-1] + jg[:, :-2])).norm(dim=-1)
+        m3 = m[:, 2:] * m[:, 1:-1] * m[:, :-2]
+        sums = self._val["sums"]
+
+        def add(key: str, err: torch.Tensor, mask: torch.Tensor) -> None:
+            s, n = sums.get(key, (0.0, 0.0))
+            sums[key] = (s + float((err * mask).sum()), n + float(mask.sum()))
+
+        add("pa_mpjpe", per["pa_mpjpe"].mean(-1), m)
+        add("accel", acc.mean(-1), m3)
+        for g, idx in self.groups.items():
+            idx = idx.to(jh.device)
+            add(f"mpjpe_{g}", per["mpjpe"][..., idx].mean(-1), m)
+            add(f"pa_mpjpe_{g}", per["pa_mpjpe"][..., idx].mean(-1), m)
+            add(f"accel_{g}", acc[..., idx].mean(-1), m3)
+
     def on_validation_epoch_end(self) -> None:
         v = self._val
         red = self.trainer.strategy.reduce if self._trainer is not None else (lambda t, **_: t)
         tot = red(torch.tensor([v["err"], v["err_g"], v["rec"], v["frames"], v["err_mean"]],
                                dtype=torch.float64,
                                device=self.device), reduce_op="sum")
+        keys = sorted(v["sums"])
+        extra = red(torch.tensor([x for k in keys for x in v["sums"][k]], dtype=torch.float64, device=self.device),
+                    reduce_op="sum") if keys else None
         hist = red(v["hist"], reduce_op="sum")
         frames = max(float(tot[3]), 1.0)
         p = hist / hist.sum(-1, keepdim=True).clamp(min=1)
@@ -182,6 +230,8 @@ class VQVAELit(L.LightningModule):
                "val/perplexity": float(ppl.mean()),          # the mean over code levels (one level: its own)
                "val/code_usage": float(used.mean()),
                "val/frames": float(tot[3])}
+        for i, k in enumerate(keys):              # PA-MPJPE, Accel, per group: mm (Accel: mm per frame^2)
+            res[f"val/{k}_mm"] = float(extra[2 * i]) / max(float(extra[2 * i + 1]), 1.0) * self.unit_scale
         if len(hist) > 1:                                   # each level's codebook (SPEC: usage >= 50% per level)
             for q in range(len(hist)):
                 res[f"val/perplexity_l{q}"], res[f"val/code_usage_l{q}"] = float(ppl[q]), float(used[q])

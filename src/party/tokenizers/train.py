@@ -53,6 +53,24 @@ def _render(tok: Tokenizer, data, clips: list[dict], stream: str, run) -> None:
                            titles=["ground truth", f"{stream} reconstruction"])
 
 
+def metric_groups(cfg, stream_joints) -> dict[str, list[int]]:
+    """{group: positions in ``stream_joints`` of its joints} for ``vqvae.metrics.groups`` (a table of
+    ``dataset.parts.groups``; the root joint belongs to the group with ``root: true``)."""
+    table = cfg.vqvae.metrics.get("groups")
+    if not table:
+        return {}
+    groups = (cfg.dataset.parts.get("groups") or {}).get(table)
+    if not groups:
+        raise ValueError(f"vqvae.metrics.groups={table!r} is not a table of dataset.parts.groups "
+                         f"({list(cfg.dataset.parts.get('groups') or {})})")
+    pos = {int(j): i for i, j in enumerate(stream_joints)}
+    out = {}
+    for name, g in groups.items():
+        joints = ([0] if g.get("root") else []) + [int(j) for j in g["joints"]]
+        out[str(name)] = [pos[j] for j in joints if j in pos]
+    return out
+
+
 def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: list | None = None) -> dict:
     """Train (or resume) one tokenizer and export it to ``out_dir``; returns its metrics.
 
@@ -67,7 +85,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     data = load_stream_data(cfg, stream)
     tok = build_tokenizer(data.in_dim, mcfg, *data.stats(), data.meta())
     model = tok.model
-    lit = VQVAELit(tok, scfg, cfg.vqvae.metrics)
+    lit = VQVAELit(tok, scfg, cfg.vqvae.metrics, metric_groups(cfg, data.meta()["stream_joints"]))
     crop = crop_length(t["crop"], model.window)
     tr = cfg.trainer
     loader = train_loader(data, crop, t["batch_size"], tr.num_workers,
