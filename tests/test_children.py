@@ -125,3 +125,23 @@ def test_pool_workers_die_with_their_parent_without_prctl(tmp_path):
     and an idle worker within a few seconds of the parent's kill -9."""
     p, pids = _start(_WRITER, tmp_path, workers=2)
     assert _kill_parent_and_wait(p, pids, 10) == [], "workers outlived their killed parent"
+
+
+def _sigterm_after_init(parent):
+    from party.lifecycle import die_with_parent
+    die_with_parent(parent)
+    return signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_pool_workers_take_sigterms_default_action():
+    """A fork pool started inside a stage inherits its Python SIGTERM handler, which runs only when
+    the worker executes bytecode: a worker waiting in C on a lock would outlive the pool's
+    terminate() and hang its join. The pool initializer restores the default action."""
+    import multiprocessing as mp
+
+    from party.lifecycle import terminate_on_sigterm
+
+    with terminate_on_sigterm():
+        assert signal.getsignal(signal.SIGTERM) != signal.SIG_DFL
+        with mp.get_context("fork").Pool(1) as pool:
+            assert pool.apply(_sigterm_after_init, (os.getpid(),))

@@ -101,6 +101,12 @@ def die_with_parent(parent: int | None = None, poll_s: float = 1.0) -> None:
             log.debug("prctl unavailable (%s); polling the parent instead", e)
     if os.getppid() != parent:          # it died before the request (prctl does not look back)
         os._exit(1)
+    # a pool's terminate() sends SIGTERM: the kernel's default action ends a worker at once. A
+    # Python handler inherited through fork (a stage's, ``terminate_on_sigterm``) runs only when the
+    # worker's main thread next executes bytecode, never while it waits in C on a lock (the pool's
+    # task-queue semaphore): the worker would live on and the pool's join wait for ever.
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
     def watch() -> None:
         while os.getppid() == parent:
