@@ -49,8 +49,8 @@ class TextPrior:
     """Captions -> the frozen TMA text embedding mu_t (B, latent), cached per caption on the CPU.
     Not an ``nn.Module``: no part of the GPT's state dict or parameters."""
 
-    def __init__(self, tma, text):
-        self.tma, self.text = tma.eval(), text
+    def __init__(self, tma, text, meta: dict | None = None):
+        self.tma, self.text, self.meta = tma.eval(), text, dict(meta or {})
         for p in self.tma.parameters():
             p.requires_grad_(False)
         self._mu: dict[str, torch.Tensor] = {}
@@ -60,7 +60,7 @@ class TextPrior:
         """The TMA of ``folder`` (``model.pt``) with the text encoder of ``text_cfg`` (checked by id)."""
         from party.methods.humantomato.tma_train import load_tma, tma_text
         tma, meta = load_tma(folder)
-        return cls(tma, tma_text(folder, meta, text_cfg))
+        return cls(tma, tma_text(folder, meta, text_cfg), meta)
 
     @property
     def dim(self) -> int:

@@ -122,14 +122,13 @@ class HGPTMethod(TokenMethod):
         return super().codes(text_emb, lengths, gcfg, generator, texts=texts)
 
 
-def build_aligner(cfg, entry, tokenizer):
-    """The frozen decoder + TMA prior of L_align, the captions read with the TMA's text encoder."""
-    from party.methods.humantomato.align import Aligner
-    from party.methods.humantomato.tma_train import load_tma, tma_text
+def build_aligner(cfg, entry, tokenizer, prior=None):
+    """The frozen decoder + TMA prior of L_align, the captions read with the TMA's text encoder;
+    ``prior``: that TMA already loaded as the text token (``align.TextPrior``), reused."""
+    from party.methods.humantomato.align import Aligner, TextPrior
 
-    folder = prior_folder(entry)
-    tma, meta = load_tma(folder)
-    return Aligner(tokenizer, tma, meta, tma_text(folder, meta, cfg.text), float(entry.eta),
+    prior = prior or TextPrior.load(prior_folder(entry), cfg.text)
+    return Aligner(tokenizer, prior.tma, prior.meta, prior.text, float(entry.eta),
                    str(entry.relax), float(entry.gumbel_tau), float(entry.align_tau), float(entry.filter_threshold))
 
 
@@ -173,7 +172,7 @@ class HumanTomatoFamily(TokenModelFamily):
             model.text_source = prior
             model.set_text_stats(prior(list(dict.fromkeys(ds.captions))))
         if float(entry.eta) > 0:
-            model.aligner = build_aligner(cfg, entry, tok)
+            model.aligner = build_aligner(cfg, entry, tok, prior)
         return model
 
     @classmethod
