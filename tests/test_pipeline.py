@@ -1,5 +1,8 @@
-"""End to end: the real `dvc repro` of the whole pipeline on every `conf/experiment/*.yaml`
-(today `experiment=tiny`), so a new experiment file is run through every stage, not only composed.
+"""End to end: the real `dvc repro` of the whole pipeline at `experiment=tiny`'s budgets with every
+other `conf/experiment/*.yaml` layered under it (`experiment=[<others>..., tiny]`: tiny's budgets
+win), so a new experiment file's stages and methods run through every stage, not only compose, in one
+pipeline that fits the test budget (an experiment at the default's budgets alone takes longer than
+the whole suite may).
 
 Runs in a copy of the repository (tracked and untracked-not-ignored files), so
 the working tree's data/ and mlruns/ are untouched.
@@ -19,6 +22,7 @@ from helpers import copy_project, e2e_env, run_checked
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf/experiment").glob("*.yaml"))
+LAYERED = [e for e in EXPERIMENTS if e != "tiny"] + ["tiny"]        # the last wins
 STUBS = "tests/methods/stub_families.py"
 # planted through oc.env in a URL and as a bare value; it must reach no file of the run (made
 # here, so that no file of the copied project holds it)
@@ -32,13 +36,13 @@ def test_there_are_experiments_to_run():
 _sh = run_checked
 
 
-@pytest.fixture(scope="module", params=EXPERIMENTS)
-def pipeline(request, tmp_path_factory):
-    work = copy_project(tmp_path_factory.mktemp(f"e2e-{request.param}") / "repo")
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    work = copy_project(tmp_path_factory.mktemp("e2e") / "repo")
     env = e2e_env(PARTY_E2E_SECRET=SECRET)
     # two method families registered from test code only (tests/methods/stub_families.py), added
     # the way a user adds a plug-in; kept in conf/local/choices.yaml for every later composition
-    _sh([str(BIN / "party"), "params", f"experiment={request.param}", f"generator.plugins=[{STUBS}]",
+    _sh([str(BIN / "party"), "params", f"experiment=[{','.join(LAYERED)}]", f"generator.plugins=[{STUBS}]",
          "+generator.methods.regressor={family: stub_regressor, ridge: 1.0}",
          "+generator.methods.twolevel={family: stub_twolevel}",
          "+part_texts.base_url='http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_E2E_SECRET}'",
