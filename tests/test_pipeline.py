@@ -57,7 +57,7 @@ def test_dvc_repro_runs_every_stage(pipeline):
     params = yaml.safe_load((work / "params.yaml").read_text())
     streams = params["dataset"]["parts"]["streams"]
     methods = list(params["generator"]["methods"])
-    for stage in ("prepare", "cache_part_texts", "embed_texts", *(f"train_vqvae@{s}" for s in streams),
+    for stage in ("prepare", "cache_part_texts", "cache_interactions", "embed_texts", *(f"train_vqvae@{s}" for s in streams),
                   "extract_tokens", *(f"train_evaluator@{s}" for s in streams),
                   *(f"train_generator@{m}" for m in methods), *(f"generate@{m}" for m in methods), "evaluate"):
         assert f"'{stage}'" in repro.stdout, stage

@@ -115,8 +115,8 @@ def test_overriding_a_source_key_at_stage_time_is_refused():
     with pytest.raises(DivergingOverride, match=r"text\.index_path"):
         check_overrides(["paths.prepared=/elsewhere"], "embed_texts", ROOT / "conf")
     # overriding the derived keys too says what the user means: allowed
-    check_overrides(["paths.prepared=/x", "text.index_path=/x/index.json", "part_texts.index_path=/x/index.json"],
-                    "embed_texts", ROOT / "conf")
+    check_overrides(["paths.prepared=/x", "text.index_path=/x/index.json", "part_texts.index_path=/x/index.json",
+                     "interactions.index_path=/x/index.json"], "embed_texts", ROOT / "conf")
     check_overrides(["vqvae.train.max_steps=5"], "train_vqvae", ROOT / "conf")     # nothing derived from it
 
 

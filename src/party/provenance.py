@@ -19,6 +19,7 @@ same bytes under another folder digest the same, so a package's copies match the
 | ``embeddings`` | ``<embeddings_dir>/<encoder id>/`` ``embeddings.npy``, ``keys.json``, ``meta.json`` | a generator's record | ``generate_run``, ``party.load`` |
 | ``generator`` | every file of its folder but ``last.ckpt`` | a generated run's ``index.json`` | ``evaluate`` loading the run (``check_generated``) |
 | ``evaluator`` | ``<stream>/finest.tar`` | - | - |
+| ``interactions`` | ``interactions.json``, ``subset.json`` (``cache_interactions``) | a generator's record (a method that reads interaction texts) | generation (``TrainedMethod.bind``) |
 
 A record is ``{name: {"kind", "path", "sha256"}}``, ``name`` e.g. ``tokenizer/holistic``,
 ``tokens/arms``, ``embeddings``. Evaluators record nothing: they read the prepared motion and text
@@ -41,11 +42,13 @@ OVERRIDE = "generator.allow_mismatch=true (party generate --allow-mismatch)"
 
 #: the files that identify a folder of each kind (``generator``: every file but ``SKIP``)
 FILES = {"tokenizer": ("model.pt",), "tokens": ("index.json", "codes.npy"),
-         "embeddings": ("embeddings.npy", "keys.json", "meta.json"), "evaluator": ("finest.tar",)}
+         "embeddings": ("embeddings.npy", "keys.json", "meta.json"), "evaluator": ("finest.tar",),
+         "interactions": ("interactions.json", "subset.json")}
 SKIP = ("last.ckpt",)
 #: the command that writes each kind
 PRODUCER = {"tokenizer": "party train_vqvae", "tokens": "party extract_tokens", "embeddings": "party embed_texts",
-            "evaluator": "party train_evaluator", "generator": "party train_generator"}
+            "evaluator": "party train_evaluator", "generator": "party train_generator",
+            "interactions": "party cache_interactions"}
 SHOWN = 16                         # hex digits of a digest shown in messages
 
 _warned: set[str] = set()

@@ -343,6 +343,45 @@ class PartTexts:
     seed: Optional[int] = None
 
 
+@dataclass
+class InteractionSubset:
+    n_interactive: Optional[int] = _COUNT()
+    n_non_interactive: Optional[int] = _SOME()
+    non_interactive_ratio: float = _range(0)
+    mirror: str = _choice("exclude", "keep")
+
+
+@dataclass
+class Interactions:                     # party.text.interactions (SPEC-textim §3)
+    backend: str = _choice("rules", "openai", "oracle")
+    generate_backend: Optional[str] = MISSING
+    model: str = MISSING
+    base_url: str = MISSING
+    api_key_env: str = MISSING
+    allow_insecure_http: bool = MISSING
+    prompt_version: str = MISSING
+    temperature: float = _range(0)
+    max_attempts: int = _COUNT()
+    unsided: str = _choice("both", "right")
+    span_overlap: float = _range(0, 1, above=True)
+    max_fallback_rate: float = _range(0, 1)
+    concurrency: int = _COUNT()
+    cache_path: str = MISSING
+    timeout_s: float = _POSITIVE()
+    max_tokens: int = _COUNT()
+    max_retries: int = _SOME()
+    backoff_base_s: float = MISSING
+    backoff_max_s: float = MISSING
+    backoff_jitter: float = MISSING
+    retry_after_max_s: float = MISSING
+    max_consecutive_failures: int = _SOME()
+    seed: int = MISSING
+    oracle_root: Optional[str] = MISSING
+    index_path: str = MISSING
+    out_dir: str = MISSING
+    subset: InteractionSubset = _group(InteractionSubset)
+
+
 # --------------------------------------------------------------------------- vqvae
 
 @dataclass
@@ -667,6 +706,17 @@ class Physics:                              # eval.physics: party.evaluation.phy
 
 
 @dataclass
+class EvalInteraction:                      # eval.interaction: party.evaluation.interaction (TextIM's metrics)
+    enabled: bool = MISSING
+    dir: str = MISSING
+    hand_joints: List[int] = MISSING        # [left, right]
+    foot_joints: List[int] = MISSING        # [left, right]
+    foot_with_ankles: bool = MISSING
+    pos_unit: str = _choice("m", "cm", "mm")
+    vel_unit: str = _choice("cm_per_frame", "m_per_frame", "mm_per_frame", "m_per_s")
+
+
+@dataclass
 class Efficiency:
     ait_samples: int = MISSING
     ait_warmup: int = MISSING
@@ -722,6 +772,7 @@ class Eval:
     sources: EvalSources = _group(EvalSources)
     coherence: Coherence = _group(Coherence)
     physics: Physics = _group(Physics)
+    interaction: EvalInteraction = _group(EvalInteraction)
     efficiency: Efficiency = _group(Efficiency)
     calibrate: Calibrate = _group(Calibrate)
     held_out_subset: bool = MISSING
@@ -946,6 +997,7 @@ class Config:
     trainer: Trainer = _group(Trainer)
     text: Text = _group(Text)
     part_texts: PartTexts = _group(PartTexts)
+    interactions: Interactions = _group(Interactions)
     vqvae: Vqvae = _group(Vqvae)
     evaluator: Evaluator = _group(Evaluator)
     tma: Tma = _group(Tma)
@@ -957,7 +1009,8 @@ class Config:
 
 #: the config groups of conf/ and their schema
 SCHEMA_GROUPS: dict[str, type] = {"dataset": Dataset, "tracking": Tracking, "trainer": Trainer,
-                                  "text": Text, "part_texts": PartTexts, "vqvae": Vqvae,
+                                  "text": Text, "part_texts": PartTexts, "interactions": Interactions,
+                                  "vqvae": Vqvae,
                                   "evaluator": Evaluator, "tma": Tma, "eval": Eval, "generator": Generator}
 
 

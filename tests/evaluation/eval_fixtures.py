@@ -143,6 +143,7 @@ def make_cfg(tmp: Path, data_root: Path, overrides=()) -> "OmegaConf":
     cfg.eval.device = "cpu"
     cfg.eval.sources.tokenizers_dir = str(tmp / "tokenizers")
     cfg.eval.sources.generated_dir = str(tmp / "generated")
+    cfg.eval.interaction.dir = str(tmp / "interactions")      # none unless a test writes one
     cfg.eval.calibrate.out_dir = str(tmp / "calibration")
     for o in overrides:
         k, v = o.split("=", 1)

@@ -18,11 +18,11 @@ CONF = ROOT / "conf"
 
 def test_builtin_families_and_the_default_methods():
     fams = methods.families()
-    assert {"party", "parco", "random_codes", "humantomato"} <= set(fams)
+    assert {"party", "parco", "random_codes", "humantomato", "textim"} <= set(fams)
     cfg = compose([], CONF)
     assert {m: methods.family_of(cfg.generator, m).name for m in cfg.generator.methods} == {
         "party": "party", "holistic": "party", "parco": "parco", "party_parts_only": "party",
-        "humantomato": "humantomato", "random": "random_codes"}
+        "humantomato": "humantomato", "textim": "textim", "mdm": "textim", "random": "random_codes"}
     with pytest.raises(KeyError, match=r"generator.method='nope' is not in generator.methods \(party, holistic"):
         methods.family_of(cfg.generator, "nope")
 

@@ -1,6 +1,6 @@
 """Loading what an evaluation needs from config: the evaluators of each stream, the
-coherence part sets and SC reference statistics, tokenizer reconstruction sources, and
-the efficiency table (parameters, AIT). Used by ``evaluate``, ``calibrate_coherence``
+coherence part sets and SC reference statistics, tokenizer reconstruction sources, the
+interaction metrics' setup, and the efficiency table (parameters, AIT). Used by ``evaluate``, ``calibrate_coherence``
 and the tokenizer ablation's reconstruction FID."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from party.evaluation.checkpoint import load_reference, load_trained
 from party.evaluation.coherence import Parts, SCReference
 from party.data.context import DataContext, load_context
 from party.evaluation.efficiency import measure_ait
+from party.evaluation.interaction import InteractionSetup
 from party.evaluation.protocol import motion_joints
 from party.evaluation.retrievers import load_retriever
 from party.evaluation.sources import find_tokenizer, load_tokenizer_source
@@ -169,6 +170,20 @@ def held_out_subsets(cfg, ctx) -> dict[str, tuple[set[str], str]]:
     pairs = ", ".join(f"{a}+{g}" for a, g in held)
     return {"held_out": (ids, f"{len(ids)} {cfg.eval.split} clips of the arm x leg combinations held out of "
                               f"training ({pairs}): compositional generalisation")}
+
+
+def interaction_setup(cfg: DictConfig, ctx: DataContext) -> InteractionSetup | None:
+    """The interaction metrics' setup (``eval.interaction``, ``party.evaluation.interaction``): None
+    when off, or, with one warning, when its folder (``party cache_interactions``' output) is missing."""
+    ic = cfg.eval.get("interaction")
+    if ic is None or not ic.enabled:
+        return None
+    if not Path(ic.dir).is_dir():
+        log.warning("%s: no interactions folder; the interaction metrics (eval.interaction) are skipped "
+                    "(run `party cache_interactions`)", ic.dir)
+        return None
+    length_unit = float(OmegaConf.select(cfg, "eval.physics.length_unit", default=1.0))
+    return InteractionSetup.from_config(OmegaConf.to_container(ic, resolve=True), ctx, cfg.eval.split, length_unit)
 
 
 #: (stream key or 'coherence', metric) columns a generator ablation row reports; "{whole}" / "{part}"

@@ -13,7 +13,8 @@ the one-process result exactly, whatever the number of workers (a test checks it
     results, sc_ref = run_shared(cfg, inputs, workers=3)
 
 Shares: the whole-body stream (``PartLayout.whole_stream``; ``holistic`` in the default layout)
-alone, first, with TC/SC, the physics metrics and MultiModality (which reads its evaluator), the
+alone, first, with TC/SC, the physics metrics, the interaction metrics (of every source: that share
+reconstructs with every tokenizer) and MultiModality (which reads its evaluator), the
 other streams dealt round-robin over the other workers; a tokenizer's reconstruction error and the
 physics metrics of its reconstructions are computed in the share scoring its stream (else the
 first). What every share repeats: the draws, the whole-body
@@ -47,22 +48,27 @@ class ProtocolInputs:
     gt: object
     tokenizers: dict
     generated: list
-    subsets: dict            # {name: (clip ids, description)}
+    subsets: dict            # {name: (clip ids, description)}; the interactive subset under 'interaction'
     physics: object = None   # PhysicsSetup of the dataset, or None (eval.physics off)
+    interaction: object = None   # InteractionSetup, or None (eval.interaction off or its folder missing)
 
     @property
     def source_order(self) -> list[str]:
         return ["ground_truth"] + [f"recon_{s}" for s in self.tokenizers] + [g.name for g in self.generated]
 
 
-def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_reference: bool = True) -> ProtocolInputs:
+def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_reference: bool = True,
+                    interaction: bool = True) -> ProtocolInputs:
     """Everything ``run_protocol`` reads, from config: the evaluators of ``streams`` (default
     ``evaluator.streams``), the SC reference when ``sc_reference`` (fitting it takes a few seconds),
-    ground truth, tokenizer reconstructions, generated runs, the held-out subsets and the physics
-    metrics' setup (the dataset's foot joints and fps, ``eval.physics``)."""
+    ground truth, tokenizer reconstructions, generated runs, the held-out subsets, the physics
+    metrics' setup (the dataset's foot joints and fps, ``eval.physics``) and, when ``interaction``,
+    the interaction metrics' setup (``eval.interaction``; its clips and description also under
+    ``subsets['interaction']``, which the report and the summary read)."""
     from party.data.context import load_context
-    from party.evaluation.loading import (coherence_parts, fit_sc_reference, held_out_subsets, load_evaluators,
-                                          tokenizer_sources)
+    from party.evaluation.interaction import BLOCK
+    from party.evaluation.loading import (coherence_parts, fit_sc_reference, held_out_subsets, interaction_setup,
+                                          load_evaluators, tokenizer_sources)
     from party.evaluation.physics import PhysicsSetup
     from party.evaluation.sources import GeneratedSource, GroundTruthSource, discover_generated
     from party.motion import get_skeleton
@@ -97,8 +103,11 @@ def protocol_inputs(cfg: DictConfig, streams: list[str] | None = None, sc_refere
                          f"(set `name` in their index.json)")
     physics = (PhysicsSetup.from_config(ec.physics, get_skeleton(ctx.index.skeleton), ctx.index.fps)
                if ec.physics.enabled else None)
-    return ProtocolInputs(ctx, device, evaluators, parts, sc_ref, gt, toks, generated, held_out_subsets(cfg, ctx),
-                          physics)
+    subsets = held_out_subsets(cfg, ctx)
+    inter = interaction_setup(cfg, ctx) if interaction else None
+    if inter is not None:
+        subsets[BLOCK] = (set(inter.clips), inter.description)
+    return ProtocolInputs(ctx, device, evaluators, parts, sc_ref, gt, toks, generated, subsets, physics, inter)
 
 
 def protocol_workers(setting: int | None, device: torch.device, n_streams: int) -> int:
@@ -115,7 +124,9 @@ def protocol_workers(setting: int | None, device: torch.device, n_streams: int) 
 def run_protocol_on(cfg: DictConfig, inp: ProtocolInputs, streams: list[str] | None = None,
                     stream_order: list[str] | None = None, extras: bool = True, mpjpe: set[str] | None = None,
                     position: int = 0) -> dict:
-    """``run_protocol`` over loaded inputs (one share when ``streams`` is given)."""
+    """``run_protocol`` over loaded inputs (one share when ``streams`` is given); the interaction
+    metrics where ``extras`` (``inp.interaction``, not a retrieval subset)."""
+    from party.evaluation.interaction import BLOCK
     from party.evaluation.protocol import Embedder, run_protocol
 
     ec = cfg.eval
@@ -123,9 +134,9 @@ def run_protocol_on(cfg: DictConfig, inp: ProtocolInputs, streams: list[str] | N
     return run_protocol(OmegaConf.to_container(ec, resolve=True), inp.gt,
                         {s: Embedder(ev, ec.embed_batch_size) for s, ev in evs.items()}, inp.tokenizers,
                         inp.generated, inp.parts, inp.sc_ref, inp.ctx.n_joints, inp.ctx.layout,
-                        progress=cfg.progress, subsets={k: ids for k, (ids, _) in inp.subsets.items()},
+                        progress=cfg.progress, subsets={k: ids for k, (ids, _) in inp.subsets.items() if k != BLOCK},
                         stream_order=stream_order, extras=extras, mpjpe=mpjpe, position=position,
-                        physics=inp.physics)
+                        physics=inp.physics, interaction=inp.interaction)
 
 
 def _share(cfg: dict, streams: list[str], stream_order: list[str], extras: bool, mpjpe: set[str], threads: int,
@@ -133,7 +144,7 @@ def _share(cfg: dict, streams: list[str], stream_order: list[str], extras: bool,
     """One worker: load this share's inputs, score them; -> (results, SC reference or None)."""
     torch.set_num_threads(threads)
     c = OmegaConf.create(cfg)
-    inp = protocol_inputs(c, streams, sc_reference=extras)
+    inp = protocol_inputs(c, streams, sc_reference=extras, interaction=extras)
     return run_protocol_on(c, inp, streams, stream_order, extras, mpjpe, position), inp.sc_ref
 
 
@@ -153,6 +164,8 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
     log.info("evaluation protocol in %d processes (%s), %d thread(s) each", workers,
              " | ".join(", ".join(sh) for sh in shares), threads)
     container = OmegaConf.to_container(cfg, resolve=True)
+    if inp.interaction is None and "interaction" in container["eval"]:   # off, or skipped here (warned once)
+        container["eval"]["interaction"]["enabled"] = False
     # workers end with this process, whatever kills it (kill -9 included): a worker holds ~2 GB
     ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=die_with_parent,
                              initargs=(os.getpid(),))

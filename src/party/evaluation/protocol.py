@@ -6,7 +6,8 @@ truth gives the FID reference statistics; every source is embedded by
 every applicable evaluator; R-Precision (B = 32 and B = 256), FID, MM-Dist
 and Diversity are computed; TC/SC on full-body sources; MPJPE on
 reconstructions. MultiModality runs its own replications on generated
-runs with repeats.
+runs with repeats. TextIM's interaction metrics (``party.evaluation.interaction``) score every
+source on the interactive subset when ``eval.interaction`` gives them.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from tqdm import tqdm
 from party.evaluation import metrics as M
 from party.evaluation.coherence import Parts, SCReference, spatial_coherence, temporal_coherence
 from party.evaluation.evaluator import Evaluator
+from party.evaluation.interaction import BLOCK as INTERACTION, InteractionScorer, InteractionSetup
 from party.evaluation.physics import PhysicsSetup, physics_sums, pooled
 from party.evaluation.sources import GeneratedSource, MotionSet, content_key, first_unseen
 from party.evaluation.stats import aggregate
@@ -187,8 +189,9 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
                  progress: bool = True, subsets: Mapping[str, set[str]] | None = None,
                  stream_order: list[str] | None = None, extras: bool = True,
                  mpjpe: set[str] | None = None, position: int = 0,
-                 whole_stream: str | None = None, physics: PhysicsSetup | None = None) -> dict[str, dict[str, dict]]:
-    """-> {source: {stream|'coherence'|'physics'|'reconstruction': {metric: {mean, ci95, n}},
+                 whole_stream: str | None = None, physics: PhysicsSetup | None = None,
+                 interaction: InteractionSetup | None = None) -> dict[str, dict[str, dict]]:
+    """-> {source: {stream|'coherence'|'physics'|'interaction'|'reconstruction': {metric: {mean, ci95, n}},
     <subset>: {stream: ...}}}
 
     ``subsets`` {name: clip ids}: the retrieval metrics again on the samples of those clips only
@@ -209,7 +212,13 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
     ``physics`` (with ``cfg['physics']['enabled']``): the physical plausibility metrics
     (``party.evaluation.physics``) of every source, memoised per motion like TC/SC: ground truth
     and generated runs where the extras are computed, each tokenizer's reconstructions where its
-    reconstruction error is (``mpjpe``)."""
+    reconstruction error is (``mpjpe``).
+
+    ``interaction`` (``party.evaluation.interaction``; None: off): TextIM's interaction metrics of every
+    source on the interactive subset's clips, where the extras are computed (every tokenizer's
+    reconstructions are then drawn there too): retrieval with the interaction text under the
+    whole-body evaluator (when it is here), joint errors against the same clip's ground truth. Its
+    R-Precision batches come from a generator of its own, spawned after the streams' ones."""
     rows: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     sub_rows: dict[str, dict[str, dict[str, list[dict]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     coh = cfg["coherence"]
@@ -219,6 +228,7 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
               if extras and coh["enabled"] and parts is not None else None)
     phys = PhysicsScorer(physics, n_joints) if physics is not None and cfg["physics"]["enabled"] else None
     whole_body = [s for s in (scorer, phys) if s is not None] if extras else []   # ground truth, generated
+    inter = InteractionScorer(interaction, n_joints) if extras and interaction is not None else None
     recon_errors: dict[str, dict[bytes, tuple[float, float, int]]] = defaultdict(dict)
     seeds = np.random.SeedSequence(int(cfg["seed"])).spawn(int(cfg["replications"]))
     desc = "replications" + (f" ({', '.join(embedders)})" if list(embedders) != order_streams else "")
@@ -235,7 +245,7 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             streams = list(embedders) if stream == whole else [s for s in embedders if s == stream]
             own_error = mpjpe is None or stream in mpjpe
             joint_scorers = [s for s, on in ((scorer, stream == whole), (phys, own_error)) if s is not None and on]
-            if not (streams or own_error or joint_scorers):
+            if not (streams or own_error or joint_scorers or inter is not None):
                 continue
             rec = src.reconstruct(gt)
             sets[f"recon_{stream}"] = (rec, streams, joint_scorers)
@@ -266,6 +276,13 @@ def run_protocol(cfg: Mapping, gt_src, embedders: dict[str, Embedder], tokenizer
             if joint_scorers:
                 for block, vals in score_blocks(ms, joint_scorers).items():
                     rows[name][block].append(vals)
+        if inter is not None:
+            irng = np.random.default_rng(ss.spawn(1)[0])
+            for name, (ms, _, _) in sets.items():
+                ref = gt if name == "ground_truth" or name.startswith("recon_") else None   # the crop they come from
+                vals = inter(ms, ref, embedders.get(whole), cfg, irng)
+                if vals:
+                    rows[name][INTERACTION].append(vals)
     z = float(cfg["ci_z"])
     order = ["ground_truth"] + [f"recon_{s}" for s in tokenizers] + [g.name for g in generated]
     out = {name: {k: aggregate(v, z) for k, v in rows[name].items()} for name in order if name in rows}
@@ -284,11 +301,11 @@ def merge_results(shares: list[dict[str, dict[str, dict]]], source_order: list[s
                   stream_order: list[str]) -> dict[str, dict[str, dict]]:
     """The results of protocol shares as one ``run_protocol`` result, in one order whatever the
     sharing: sources in ``source_order``, then per source: reconstruction, the streams in
-    ``stream_order``, coherence, physics, subsets (each subset's streams in ``stream_order``)."""
+    ``stream_order``, coherence, physics, interaction, subsets (each subset's streams in ``stream_order``)."""
     def rank(key: str) -> tuple[int, int]:
         if key in stream_order:
             return 1, stream_order.index(key)
-        return {"reconstruction": (0, 0), "coherence": (2, 0), "physics": (2, 1)}.get(key, (3, 0))
+        return {"reconstruction": (0, 0), "coherence": (2, 0), "physics": (2, 1), INTERACTION: (2, 2)}.get(key, (3, 0))
 
     merged: dict[str, dict[str, dict]] = {}
     for name in source_order:

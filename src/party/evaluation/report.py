@@ -1,5 +1,6 @@
-"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5, and a physical
-plausibility table (``physics_table``; the paper reports none).
+"""Markdown tables laid out like the paper's Tables 1, 2, 3, 4, 5 and S3-S5, a physical
+plausibility table (``physics_table``; the paper reports none) and TextIM's interaction metrics
+on the interactive subset (``interaction_table``).
 
 The stream names come from the caller (``dataset.parts.streams``, see ``PartLayout``): Table 1
 reads the whole-body stream's evaluator (``whole_stream``), Table 2 the part streams'
@@ -307,6 +308,33 @@ def physics_table(results: Mapping) -> str:
                         notes=[PHYSICS_NOTE])
 
 
+INTERACTION = "interaction"      # party.evaluation.interaction.BLOCK (not imported: this module stays torch-free)
+#: (metric of ``results[source]['interaction']``, header)
+INTERACTION_COLUMNS = (("top1", "R@1 ↑"), ("top2", "R@2 ↑"), ("top3", "R@3 ↑"), ("mm_dist", "MM-Dist ↓"),
+                       ("mpjpe", "MPJPE ↓"), ("mpvpe", "MPVPE ↓"), ("hand_jpe", "HandJPE ↓"),
+                       ("foot_jpe", "FootJPE ↓"), ("side_acc_arms", "Side acc. arms ↑"),
+                       ("side_acc_legs", "Side acc. legs ↑"))
+INTERACTION_NOTE = ("TextIM's metrics (not the ParTY paper's). R@k (`eval.batch_size` candidates) and MM-Dist: the "
+                    "whole-body evaluator with the caption's interaction instruction as the text (the full caption "
+                    "where it has none). MPJPE (every joint), HandJPE (wrists), FootJPE (feet) and MPVPE (velocity "
+                    "error) against the ground truth of the same clip: global joints, no alignment, over the frames "
+                    "both have; Real motion and reconstructions are compared with the crop they come from (Real motion "
+                    "scores 0). Side accuracy (not in the TextIM paper): of the captions whose interaction names "
+                    "one side, the share whose named wrist (arms) or foot (legs) travels farther, root-relative. "
+                    "docs/evaluation.md.")
+
+
+def interaction_table(results: Mapping, description: str = "") -> str:
+    """TextIM's interaction metrics of every source (``results[source]['interaction']``) on the
+    interactive subset, ``description`` its title; '' when no source has them."""
+    rows = [Row([label(s)] + [Num(d[INTERACTION].get(k)) for k, _ in INTERACTION_COLUMNS], row_kind(s))
+            for s, d in results.items() if d.get(INTERACTION)]
+    if not rows:
+        return ""
+    return ranked_table(f"Interaction metrics on `{INTERACTION}`" + (f": {description}" if description else ""),
+                        ["Method"] + [h for _, h in INTERACTION_COLUMNS], rows, notes=[INTERACTION_NOTE])
+
+
 def table4(results: Mapping, efficiency: Mapping) -> str:
     rows = []
     for src, d in results.items():
@@ -386,16 +414,18 @@ def report(results: Mapping, efficiency: Mapping, switches: Mapping, header: str
            retrievers: Sequence[str] = ()) -> str:
     """All tables, after ``header`` and the legend (``TABLE_LEGEND``). ``whole_stream`` / ``part_streams``:
     ``PartLayout.whole_stream`` / ``.part_streams`` of ``dataset.parts``; ``subsets`` {name: description}
-    of ``run_protocol``'s subsets; ``retrievers``: the names of ``eval.retrievers`` (a table each)."""
+    of ``run_protocol``'s subsets (``interaction``: the interactive subset, the title of the interaction
+    table); ``retrievers``: the names of ``eval.retrievers`` (a table each)."""
     parts = [header, TABLE_LEGEND, table1(results, whole_stream, large),
              *(retriever_table(results, r, large) for r in retrievers), table2(results, part_streams),
-             table3(results), physics_table(results)]
+             table3(results), physics_table(results), interaction_table(results, (subsets or {}).get(INTERACTION, ""))]
     if any(s.startswith("recon_") for s in results):
         parts.append(table4(results, efficiency))
     if switches:
         parts.append(table5(results, switches, whole_stream))
     for name, description in (subsets or {}).items():
-        parts.append(subset_table(results, name, [whole_stream, *part_streams], description))
+        if name != INTERACTION:
+            parts.append(subset_table(results, name, [whole_stream, *part_streams], description))
     parts.append(efficiency_table(efficiency))
     return "\n\n".join(p for p in parts if p) + "\n"
 
@@ -421,8 +451,8 @@ def calibration_tables(rows: list[Mapping], recommended: Mapping[str, Mapping]) 
 
 
 def dvc_metrics(results: dict, digits: int) -> dict[str, dict]:
-    """{source: {stream | coherence | physics | reconstruction: {metric: mean}, <subset>: {...}}}: the means
-    of ``results`` rounded to ``digits`` significant digits, one file per source for DVC
+    """{source: {stream | coherence | physics | interaction | reconstruction: {metric: mean},
+    <subset>: {...}}}: the means of ``results`` rounded to ``digits`` significant digits, one file per source for DVC
     (``dvc metrics show`` reads it as one row per source, ``dvc exp show`` as columns)."""
     def lean(node):
         if isinstance(node, dict) and "mean" in node:

@@ -26,7 +26,7 @@ if TYPE_CHECKING:                          # pragma: no cover
 
 #: the modules of the built-in families (imported on first look-up)
 BUILTIN = ("party.methods.party", "party.methods.parco", "party.methods.random_codes",
-           "party.methods.humantomato.family")
+           "party.methods.humantomato.family", "party.methods.textim.family")
 
 _FAMILIES: dict[str, type] = {}
 _loaded: set[str] = set()

@@ -1,0 +1,1 @@
+"""TextIM: part-aware interactive motion synthesis from text (a platform method family)."""
