@@ -134,6 +134,10 @@ def test_generation_reads_the_table_and_the_rules_for_other_captions(here, monke
     assert np.array_equal(seen["mask"].numpy(), want)
     assert seen["inter"][1].eq(1).all() and seen["non"][0].abs().sum() > 0       # encoder / store vectors
     assert seen["steps"] == ENTRY["sample_steps"] and seen["guidance"] == 2.5
+    from party.methods.textim.family import _generation_interactions      # free text: never the oracle
+    assert _generation_interactions(OmegaConf.merge(cfg, {"interactions": {"backend": "oracle"}}))["backend"] == "rules"
+    assert _generation_interactions(OmegaConf.merge(cfg, {"interactions": {"generate_backend": "openai"}})
+                                    )["backend"] == "openai"
 
 
 def test_a_changed_interaction_table_is_refused_and_allow_mismatch_lets_it_through(here, tmp_path):

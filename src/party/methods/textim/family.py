@@ -344,11 +344,13 @@ class TextIMFamily(MethodFamily):
 
 
 def _generation_interactions(cfg) -> dict:
-    """The extractor settings generation uses for captions outside the interaction table (no secrets:
-    keys stay in the environment, ``party.secrets``)."""
+    """The extractor settings generation uses for captions outside the interaction table: the
+    ``generate_backend``, else the stage's backend, the rules in place of the oracle (no secrets: keys
+    stay in the environment, ``party.secrets``)."""
     from party.config import plain
     icfg = plain(cfg.interactions)
-    return {**icfg, "backend": icfg.get("generate_backend") or icfg["backend"]}
+    backend = icfg.get("generate_backend") or icfg["backend"]
+    return {**icfg, "backend": "rules" if backend == "oracle" else backend}     # the oracle knows its captions only
 
 
 class TextIMMethod(TrainedMethod):
