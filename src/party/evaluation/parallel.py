@@ -164,7 +164,7 @@ def run_shared(cfg: DictConfig, inp: ProtocolInputs, workers: int) -> tuple[dict
     log.info("evaluation protocol in %d processes (%s), %d thread(s) each", workers,
              " | ".join(", ".join(sh) for sh in shares), threads)
     container = OmegaConf.to_container(cfg, resolve=True)
-    if inp.interaction is None and "interaction" in container["eval"]:   # off, or skipped here (warned once)
+    if "interaction" in container["eval"] and inp.interaction is None:   # off, or skipped here (warned once)
         container["eval"]["interaction"]["enabled"] = False
     # workers end with this process, whatever kills it (kill -9 included): a worker holds ~2 GB
     ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=die_with_parent,
