@@ -373,7 +373,7 @@ def test_setup_from_config_reads_the_cache_folder(prepared, tmp_path):
         InteractionSetup.from_config(c, ctx, "test")
     write_cache(folder, {}, {"test": ids})
     (folder / "subset.json").unlink()
-    with pytest.raises(FileNotFoundError, match="subset.json: file missing.*party cache_interactions"):
+    with pytest.raises(FileNotFoundError, match="subset.json: not found; run `party cache_interactions`"):
         load_interactions(folder)
 
 

@@ -28,7 +28,6 @@ Input, written by ``party cache_interactions`` under ``eval.interaction.dir``:
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -40,11 +39,13 @@ from torch.nn.utils.rnn import pad_sequence
 
 from party.evaluation import metrics as M
 from party.evaluation.sources import MotionSet
+from party.io import read_json
+from party.text.interactions.prompt import PARTS
 
 log = logging.getLogger(__name__)
 
 BLOCK = "interaction"                 # results[source][BLOCK][metric]; summary.subsets[BLOCK]
-PARTS = ("left_arm", "right_arm", "left_leg", "right_leg", "torso", "pelvis")
+PRODUCER = "party cache_interactions"
 POS_UNITS = {"m": (1.0, "m"), "cm": (100.0, "cm"), "mm": (1000.0, "mm")}
 #: vel_unit -> (factor from metres per frame, times fps?, label)
 VEL_UNITS = {"m_per_frame": (1.0, False, "m per frame"), "cm_per_frame": (100.0, False, "cm per frame"),
@@ -76,20 +77,11 @@ class InteractionData:
     folder: Path
 
 
-def _read(path: Path) -> object:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file missing; rerun `party cache_interactions`")
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: cannot read ({e}); rerun `party cache_interactions`") from e
-
-
 def load_interactions(folder: str | Path) -> InteractionData:
     """Read and check ``interactions.json`` and ``subset.json`` of ``folder``; errors name the file."""
     folder = Path(folder)
     path = folder / "interactions.json"
-    raw = _read(path)
+    raw = read_json(path, PRODUCER)
     if not isinstance(raw, dict):
         raise ValueError(f"{path}: expected an object {{caption: entry}}, got {type(raw).__name__}")
     entries = {}
@@ -107,7 +99,7 @@ def load_interactions(folder: str | Path) -> InteractionData:
         entries[cap] = Instruction(frozenset(e["parts"]), inter or None,
                                    tuple(toks) if toks and inter else None)
     spath = folder / "subset.json"
-    sub = _read(spath)
+    sub = read_json(spath, PRODUCER)
     if not isinstance(sub, dict):
         raise ValueError(f"{spath}: expected an object {{split: [clip ids], description}}, got {type(sub).__name__}")
     splits = {k: v for k, v in sub.items() if isinstance(v, list)}        # other keys (counts, ...) not read

@@ -23,6 +23,7 @@ from torch.utils.data import Dataset
 
 from party.data.datasets import FeatureBank
 from party.io import read_json
+from party.text.interactions.extract import part_mask
 
 PRODUCER = "party cache_interactions"
 
@@ -46,16 +47,6 @@ class InteractionTable:
         if split not in self.subset:
             raise KeyError(f"{self.folder / 'subset.json'}: no split {split!r} (have {', '.join(self.subset)})")
         return [str(c) for c in self.subset[split]]
-
-
-def part_mask(parts: Sequence[str], groups: Mapping[str, np.ndarray], dim: int) -> np.ndarray:
-    """The channel mask m (``dim``,) of ``parts``: the union of their channel groups (SPEC §2)."""
-    m = np.zeros(dim, dtype=bool)
-    for p in parts:
-        if p not in groups:
-            raise KeyError(f"interaction part {p!r} is not a mask group (have {', '.join(groups)})")
-        m[groups[p]] = True
-    return m
 
 
 class TextTable:

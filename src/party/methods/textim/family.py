@@ -239,6 +239,7 @@ class TextIMFamily(MethodFamily):
         from party.methods.store import save_weights, write_method_json
         from party.methods.textim.data import InteractionDataset, InteractionTable, TextTable, collate_interactions
         from party.motion.parts import group_index
+        from party.schema import step_keys
         from party.training import (AtomicCheckpoint, TrainingSession, build_trainer, config_key, data_identity,
                                     file_sha, precision_identity, start_training, trainer_kwargs)
         from party.generator.train import fit_resumable
@@ -278,7 +279,6 @@ class TextIMFamily(MethodFamily):
         built_from = provenance.record({"embeddings": ("embeddings", cfg.text.embeddings_dir),
                                         "interactions": ("interactions", inter_dir)})
         precision = trainer_kwargs(cfg, g.trainer)["precision"]
-        from party.schema import step_keys
         key = config_key({"method": step_keys(TextIMMethodConfig, entry), "seed": cfg.seed,
                           "val_split": t.val_split, **precision_identity(precision)},
                          {**data_identity(ctx.index.path, ctx.index.root),
@@ -447,12 +447,10 @@ class TextIMMethod(TrainedMethod):
         if self.kind == "mdm":
             x = self.model.sample(cap, n, generator, steps=steps, guidance=scale)
         else:
+            from party.text.interactions.extract import part_mask
             rows = [self._interaction(t) for t in texts]
-            d = int(self.ctx.feat_dim)
-            mask = torch.zeros(b, d, dtype=torch.bool)
-            for i, r in enumerate(rows):
-                for p in r.get("parts") or ():
-                    mask[i, self.meta["mask_groups"][p]] = True
+            groups, d = self.meta["mask_groups"], int(self.ctx.feat_dim)
+            mask = torch.from_numpy(np.stack([part_mask(r.get("parts") or (), groups, d) for r in rows]))
             inter = self._embed([r.get("inter") for r in rows])
             non = self._embed([r.get("non") for r in rows])
             x = self.model.sample(cap, inter, non, mask, n, generator, steps=steps, guidance=scale).motion
