@@ -1,6 +1,7 @@
 """Does a trained generator do what a prompt names on the named side? (synthetic dataset)
 
     .venv/bin/python scripts/check_generator.py [--methods party holistic parco party_parts_only] [--samples 20]
+                                                (any trained method: --methods textim mdm humantomato)
                                                 [--frames 120] [--out data/eval/side_checks.json]
                                                 [--sampling sample|greedy] [--cond-scale S]
                                                 [--part-streams]
@@ -12,6 +13,11 @@ the named limb does it, with the criteria of ``party.data.synthetic.checks`` (th
 >= 20 points more frames than the other wrist; a kicking foot's ankle is 10 cm above the other
 more often than the reverse. Both hold for 100% of the synthetic ground truth. Also reported:
 how often the *other* limb does it instead (a wrong side, as opposed to no action at all).
+
+Every method family samples through ``TrainedMethod.sample`` (token models decode their codes; TextIM
+and MDM return features). The prompts come in left/right-swapped pairs: ``swapped pairs`` is how
+often both samples of a pair (same seed position) do it on their own named side, reported for the
+arms (wave, raise) and the legs (kick) apart, as SPEC-textim §11 item 8 asks.
 
 ``--part-streams`` (ParTY only) also decodes each sample's own Arms / Legs codes through the part
 tokenizers (composed as the part-wise baseline is) and reports the same check on them, and how
@@ -31,7 +37,7 @@ from party.data.context import load_context
 from party.data.synthetic.checks import OTHER, kick_kept, wave_kept
 import torch
 
-from party.generator.generate import embed_texts
+from party.generator.generate import embed_texts, generate_batches
 from party.methods import load_method
 from party.methods.tokens import TokenDecoder
 from party.motion.features import recover_from_ric_np
@@ -42,6 +48,19 @@ PROMPTS = [("wave", "left", "a person is waving using the left hand"),
            ("wave", "right", "the right arm goes up over the head and stays there"),
            ("kick", "left", "a person does a kick using the left foot"),
            ("kick", "right", "a person does a kick using the right foot")]
+
+
+LIMB = {"wave": "arms", "kick": "legs"}
+
+
+def swapped_pairs(oks: dict) -> dict[str, float]:
+    """{arms|legs: share of sample positions where both prompts of a left/right pair (the same text
+    with the side swapped, consecutive in PROMPTS) are done on their own named side}."""
+    out: dict[str, list] = {}
+    for (kind, s1, p1), (_, s2, p2) in zip(PROMPTS[0::2], PROMPTS[1::2]):
+        assert {s1, s2} == {"left", "right"}, (p1, p2)
+        out.setdefault(LIMB[kind], []).extend(oks[p1] & oks[p2])
+    return {k: float(np.mean(v)) for k, v in out.items()}
 
 
 def _pct(x) -> str:
@@ -82,27 +101,33 @@ def main() -> None:
     report = {}
     for m in a.methods:
         trained = load_method(Path(a.generators or cfg.generator.out_dir) / m).bind(ctx)
-        meta, whole = trained.meta, ctx.layout.whole_stream
-        lengths = {s: torch.full((len(texts),), max(1, a.frames // meta["windows"][s])) for s in trained.streams}
-        part_streams = [s for s in trained.streams if s != whole]
+        whole = ctx.layout.whole_stream
+        lengths = trained.frame_lengths([a.frames] * len(texts))
+        part_streams = [s for s in trained.streams if s != whole] if hasattr(trained, "streams") else []
         # ParTY (whole-body and part codes): also decode its part codes alone, composed
-        parts = TokenDecoder(meta["tokenizers_dir"], ctx, part_streams) \
-            if a.part_streams and whole in trained.streams and part_streams else None
-        gen, B = torch.Generator().manual_seed(gcfg.seed), gcfg.batch_size
-        feats, part_feats = [], []
-        for b0 in range(0, len(texts), B):
-            codes = trained.codes(torch.as_tensor(emb[b0:b0 + B], dtype=torch.float32),
-                                  {k: v[b0:b0 + B] for k, v in lengths.items()}, gcfg, gen,
-                                  texts=texts[b0:b0 + B])
-            for i in range(len(next(iter(codes.values())))):
-                one = {k: v[i] for k, v in codes.items()}
-                feats.append(trained.decode(one))
-                part_feats.append(None if parts is None else parts(one))
+        parts = TokenDecoder(trained.meta["tokenizers_dir"], ctx, part_streams) \
+            if a.part_streams and whole in getattr(trained, "streams", ()) and part_streams else None
+        part_feats: list = [None] * len(texts)
+        if parts is None:
+            feats = generate_batches(trained, emb, lengths, gcfg, progress=False, texts=texts)
+        else:
+            gen, B = torch.Generator().manual_seed(gcfg.seed), gcfg.batch_size
+            feats, part_feats = [], []
+            for b0 in range(0, len(texts), B):
+                codes = trained.codes(torch.as_tensor(emb[b0:b0 + B], dtype=torch.float32),
+                                      {k: v[b0:b0 + B] for k, v in lengths.items()}, gcfg, gen,
+                                      texts=texts[b0:b0 + B])
+                for i in range(len(next(iter(codes.values())))):
+                    one = {k: v[i] for k, v in codes.items()}
+                    feats.append(trained.decode(one))
+                    part_feats.append(parts(one))
+        oks = {}
         rows = {}
         for n, (kind, s, p) in enumerate(PROMPTS):
             sl = slice(n * a.samples, (n + 1) * a.samples)
             joints = [recover_from_ric_np(f, ctx.n_joints) for f in feats[sl]]
             ok = np.array([kept[kind](j, s) for j in joints])
+            oks[p] = ok
             mirrored = [kept[kind](j, OTHER[s]) for j in joints]     # the other limb does it instead
             rows[p] = {"kind": kind, "side": s, "kept": float(np.mean(ok)), "other_side": float(np.mean(mirrored))}
             if parts is not None:
@@ -112,14 +137,17 @@ def main() -> None:
                                                                                             for j in pj])),
                                     "holistic_kept_if_parts_kept": float(ok[pok].mean()) if pok.any() else None,
                                     "holistic_kept_if_not": float(ok[~pok].mean()) if (~pok).any() else None}
+        pairs = swapped_pairs(oks)
         report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()])),
+                     "swapped_pairs": pairs,
                      "other_side": float(np.mean([r["other_side"] for r in rows.values()])),
                      "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale),
                      "part_cond_scale": gcfg.get("part_cond_scale")}
         print(f"{m} ({a.sampling}, cond_scale {float(gcfg.cond_scale):g}, part_cond_scale "
               f"{gcfg.get('part_cond_scale')}): "
               + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
-              + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})")
+              + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})"
+              + "; swapped pairs " + ", ".join(f"{k} {v:.0%}" for k, v in pairs.items()))
         if parts is not None:
             print(f"{m}, its part codes alone: " + "; ".join(
                 f"{r['kind']}-{r['side']} {r['parts']['kept']:.0%} (other {r['parts']['other_side']:.0%}; holistic "

@@ -112,15 +112,19 @@ def test_generate_for_people_writes_motion_gif_and_bvh(pipeline):
 @pytest.mark.slow
 def test_side_check_script_on_the_pipeline_outputs(pipeline):
     """scripts/check_generator.py: per prompt the share of samples where the named limb does it
-    (and the other instead); with --part-streams, ParTY's part codes decoded alone as well."""
+    (and the other instead), and the left/right-swapped pairs per limb, for a token method and a
+    feature method alike; with --part-streams, ParTY's part codes decoded alone as well."""
     work, env, _ = pipeline
     out = work / "outputs" / "side.json"
-    _sh([sys.executable, "scripts/check_generator.py", "--methods", "party", "holistic", "--samples", "2",
+    _sh([sys.executable, "scripts/check_generator.py", "--methods", "party", "holistic", "textim", "mdm",
+         "--samples", "2",
          "--frames", "48", "--part-streams", "--out", str(out)], work, env)
     report = json.loads(out.read_text())
-    assert set(report) == {"party", "holistic"}
+    assert set(report) == {"party", "holistic", "textim", "mdm"}
     for m, r in report.items():
         assert len(r["prompts"]) == 6 and 0.0 <= r["mean"] <= 1.0
+        assert set(r["swapped_pairs"]) == {"arms", "legs"}
+        assert all(v in (0.0, 0.5, 1.0) for v in r["swapped_pairs"].values())
         for row in r["prompts"].values():
             assert row["kept"] in (0.0, 0.5, 1.0) and row["side"] in ("left", "right")
             assert ("parts" in row) == (m == "party")

@@ -712,6 +712,7 @@ class EvalInteraction:                      # eval.interaction: party.evaluation
     hand_joints: List[int] = MISSING        # [left, right]
     foot_joints: List[int] = MISSING        # [left, right]
     foot_with_ankles: bool = MISSING
+    boundary_joints: List[int] = MISSING    # where the parts meet: boundary speed
     pos_unit: str = _choice("m", "cm", "mm")
     vel_unit: str = _choice("cm_per_frame", "m_per_frame", "mm_per_frame", "m_per_s")
 

@@ -13,7 +13,7 @@ import torch
 from eval_fixtures import ROOT, make_cfg, make_joints, prepare, write_dataset
 from omegaconf import OmegaConf
 
-from party.evaluation.interaction import (BLOCK, InteractionScorer, InteractionSetup, joint_values,
+from party.evaluation.interaction import (_VALUES, BLOCK, InteractionScorer, InteractionSetup, joint_values,
                                           load_interactions, side_accuracy)
 from party.evaluation.sources import MotionSet
 from party.motion.features import joints_to_features, recover_from_ric
@@ -23,6 +23,7 @@ CFG = {"batch_size": 32, "top_k": 3}
 HAND = {"left": 20, "right": 21}
 FOOT = {"left": 10, "right": 11}
 RIC = 4                                   # features: root (4), then ric positions of joints 1..J-1
+BOUNDARY = (13, 14, 16, 17, 1, 2)         # collars, shoulders, hips
 
 
 def feats(arm: str, leg: str, n: int, seed: int) -> np.ndarray:
@@ -47,12 +48,12 @@ def write_cache(folder: Path, entries: dict, splits: dict, description: str = "i
 
 
 def setup_of(tmp: Path, clips: dict[str, np.ndarray], entries: dict, scored=None, pos_scale=1.0,
-             vel_scale=100.0, foot_jpe=(10, 11)) -> InteractionSetup:
+             vel_scale=100.0, foot_jpe=(10, 11), boundary=BOUNDARY) -> InteractionSetup:
     """A setup over an in-memory set of whole ground-truth clips ({clip id: features})."""
     ids = sorted(clips) if scored is None else scored
     data = load_interactions(write_cache(tmp / "interactions", entries, {"test": ids}))
     return InteractionSetup(data, frozenset(ids), clips.__getitem__, (20, 21), (10, 11), tuple(foot_jpe),
-                            pos_scale, vel_scale, "interactive clips")
+                            tuple(boundary), pos_scale, vel_scale, "interactive clips")
 
 
 def motion_set(clips: dict[str, np.ndarray], captions: dict[str, str], ids=None) -> MotionSet:
@@ -96,6 +97,7 @@ def test_ground_truth_against_itself_scores_zero_and_its_own_side_accuracy(motio
     own = scorer(gt, gt, None, CFG, np.random.default_rng(0))
     for k in ("mpjpe", "mpvpe", "hand_jpe", "foot_jpe"):
         assert own[k] == 0.0, k
+    assert own["boundary_speed"] == 1.0                                 # as fast as itself
     whole = scorer(gt, None, None, CFG, np.random.default_rng(0))      # the whole clips from the setup: same
     assert whole == own
     batched = InteractionScorer(scorer.setup, 22, batch_size=5)         # in padded batches of 5: the same
@@ -153,6 +155,37 @@ def test_constant_shift_has_zero_velocity_error_and_frames_are_the_common_ones(m
     p = recover_from_ric(torch.from_numpy((gt + noisy).astype(np.float64)), 22).numpy()
     loop = np.mean([np.linalg.norm((p[t + 1] - p[t]) - (g[t + 1] - g[t]), axis=-1).mean() for t in range(len(g) - 1)])
     assert v[1] == pytest.approx(loop, rel=1e-9) and v[1] > 0
+
+
+def test_boundary_speed_is_the_ratio_of_boundary_joint_speeds(motions, tmp_path):
+    """Jitter on the shoulders' channels (a seam) raises boundary speed above 1, jitter on the wrists
+    leaves it at 1; its value is the frame-loop ratio of the root-relative boundary speeds, summed
+    over the samples; without boundary joints the metric is absent."""
+    rng = np.random.default_rng(3)
+    ids = sorted(motions)[:3]
+    gt = {c: motions[c] for c in ids}
+    seam = {c: f.copy() for c, f in gt.items()}
+    wrists = {c: f.copy() for c, f in gt.items()}
+    for c in ids:
+        for j in (16, 17):
+            seam[c][:, ric(j)] += rng.normal(0, 0.02, (len(gt[c]), 3)).astype(np.float32)
+        for j in (20, 21):
+            wrists[c][:, ric(j)] += rng.normal(0, 0.02, (len(gt[c]), 3)).astype(np.float32)
+    caps = {c: f"a person does motion {c}" for c in ids}
+    scorer = InteractionScorer(setup_of(tmp_path, gt, {}), 22)
+
+    def speed(f):
+        j = recover_from_ric(torch.from_numpy(f.astype(np.float64)), 22).numpy()
+        rel = (j - j[:, :1])[:, list(BOUNDARY)]
+        return np.mean([np.linalg.norm(rel[t + 1] - rel[t], axis=-1).mean() for t in range(len(rel) - 1)])
+
+    out = scorer(motion_set(seam, caps), None, None, CFG, np.random.default_rng(0))
+    expect = sum(speed(seam[c]) for c in ids) / sum(speed(gt[c]) for c in ids)
+    assert out["boundary_speed"] == pytest.approx(expect, rel=1e-9) and expect > 1.5
+    calm = scorer(motion_set(wrists, caps), None, None, CFG, np.random.default_rng(0))
+    assert calm["boundary_speed"] == pytest.approx(1.0, abs=1e-9) and calm["hand_jpe"] > 0
+    none = InteractionScorer(setup_of(tmp_path / "b", gt, {}, boundary=()), 22)
+    assert "boundary_speed" not in none(motion_set(seam, caps), None, None, CFG, np.random.default_rng(0))
 
 
 # --------------------------------------------------------------------------- side accuracy
@@ -219,7 +252,7 @@ def test_retrieval_uses_the_interaction_text_and_tokens_on_the_subset_only(tmp_p
     emb = RecordingEmbedder(truth)
     scorer = InteractionScorer(setup_of(tmp_path, clips, entries, scored=scored), 22)
     ms = motion_set(clips, caps)
-    scorer.values = lambda sub, ref: np.zeros((len(sub), 8))            # retrieval alone here
+    scorer.values = lambda sub, ref: np.zeros((len(sub), len(_VALUES)))            # retrieval alone here
     out = scorer(ms, None, emb, CFG, np.random.default_rng(0))
     (texts, tokens), = emb.seen
     assert len(texts) == 40
@@ -368,6 +401,9 @@ def test_setup_from_config_reads_the_cache_folder(prepared, tmp_path):
     with pytest.raises(ValueError, match="eval.interaction.hand_joints"):
         write_cache(folder, {}, {"test": ids})
         InteractionSetup.from_config({**c, "hand_joints": [20, 22]}, ctx, "test")
+    with pytest.raises(ValueError, match="eval.interaction.boundary_joints"):
+        InteractionSetup.from_config({**c, "boundary_joints": [13, 40]}, ctx, "test")
+    assert InteractionSetup.from_config(c, ctx, "test").boundary == BOUNDARY
     write_cache(folder, {cap: entry(["left_hand"])}, {"test": ids})
     with pytest.raises(ValueError, match=r"interactions.json: entry of .* unknown parts \['left_hand'\]"):
         InteractionSetup.from_config(c, ctx, "test")
@@ -441,7 +477,8 @@ def test_conf_keys_and_schema():
 
     c = compose([], ROOT / "conf").eval.interaction
     assert OmegaConf.to_container(c) == {"enabled": True, "dir": "data/interactions", "hand_joints": [20, 21],
-                                         "foot_joints": [10, 11], "foot_with_ankles": False, "pos_unit": "m",
+                                         "foot_joints": [10, 11], "foot_with_ankles": False,
+                                         "boundary_joints": list(BOUNDARY), "pos_unit": "m",
                                          "vel_unit": "cm_per_frame"}
     with pytest.raises(ConfigError, match="eval.interaction.pos_unit"):
         compose(["eval.interaction.pos_unit=km"], ROOT / "conf")

@@ -11,7 +11,11 @@ tokenizer's reconstructions, every generated run), per replication, from the pro
   mean ||(p̂_{t+1} − p̂_t) − (p_{t+1} − p_t)||, against the ground truth of the same clip: global
   joints from ``recover_from_ric``, no alignment, over the frames both motions have;
 - side accuracy (not in the paper): of the captions whose interaction names one side of the arms
-  (legs), the share whose named wrist (foot) travels a longer root-relative path than the other.
+  (legs), the share whose named wrist (foot) travels a longer root-relative path than the other;
+- boundary speed (not in the paper; SPEC-textim §11 item 10): the mean root-relative speed of the
+  joints where the parts meet (``boundary_joints``: collars, shoulders, hips) over the reference's
+  at the same frames, a ratio of means (1: as fast as the ground truth; a seam that jitters when
+  the interacting channels are overwritten raises it).
 
 The reference of a sample (Decision): a generated sample is compared with the whole ground-truth
 clip of its clip id (``DataContext.store``), both from their first frame, as a generator starts
@@ -52,7 +56,7 @@ VEL_UNITS = {"m_per_frame": (1.0, False, "m per frame"), "cm_per_frame": (100.0,
              "mm_per_frame": (1000.0, False, "mm per frame"), "m_per_s": (1.0, True, "m/s")}
 #: per-sample values kept in the memo, in this order
 _VALUES = ("mpjpe", "mpvpe", "hand_jpe", "foot_jpe", "path_left_hand", "path_right_hand", "path_left_foot",
-           "path_right_foot")
+           "path_right_foot", "boundary_speed", "boundary_speed_ref")
 
 
 @dataclass(frozen=True)
@@ -121,6 +125,7 @@ class InteractionSetup:
     hands: tuple[int, int]                      # (left, right) wrists
     feet: tuple[int, int]                       # (left, right) feet
     foot_jpe: tuple[int, ...]                   # FootJPE's joints
+    boundary: tuple[int, ...]                   # the joints where the parts meet (boundary speed)
     pos_scale: float                            # joint units -> pos_unit
     vel_scale: float                            # joint units per frame -> vel_unit
     description: str                            # the subset's, its clip count and the units: the table's title
@@ -154,6 +159,10 @@ class InteractionSetup:
         if c["foot_with_ankles"]:
             parents = get_skeleton(ctx.index.skeleton).parents
             foot_jpe = (*feet, *(parents[f] for f in feet if parents[f] >= 0))
+        boundary = tuple(int(x) for x in c["boundary_joints"])
+        if not all(0 <= x < n_joints for x in boundary):
+            raise ValueError(f"eval.interaction.boundary_joints: joints of the {n_joints}-joint skeleton, "
+                             f"got {list(c['boundary_joints'])}")
         if c["pos_unit"] not in POS_UNITS or c["vel_unit"] not in VEL_UNITS:
             raise ValueError(f"eval.interaction: pos_unit one of {list(POS_UNITS)}, vel_unit one of "
                              f"{list(VEL_UNITS)}; got {c['pos_unit']!r}, {c['vel_unit']!r}")
@@ -161,7 +170,7 @@ class InteractionSetup:
         vel, per_s, vel_label = VEL_UNITS[c["vel_unit"]]
         vel_scale = float(length_unit) * vel * (float(ctx.index.fps) if per_s else 1.0)
         return cls(data, frozenset(ids), lambda cid: ctx.store.clip_features(by_id[cid]), pairs["hand_joints"],
-                   feet, tuple(foot_jpe), float(length_unit) * pos, vel_scale,
+                   feet, tuple(foot_jpe), boundary, float(length_unit) * pos, vel_scale,
                    f"{data.description} ({len(set(ids))} {split} clips; positions in {pos_label}, "
                    f"velocities in {vel_label})")
 
@@ -180,11 +189,13 @@ def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 
 def joint_values(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], n_joints: int,
-                 hands: tuple[int, int], feet: tuple[int, int], foot_jpe: Sequence[int]) -> np.ndarray:
-    """(N, 8) per-sample values in ``_VALUES`` order, in joint units (per frame for MPVPE): MPJPE,
+                 hands: tuple[int, int], feet: tuple[int, int], foot_jpe: Sequence[int],
+                 boundary: Sequence[int] = ()) -> np.ndarray:
+    """(N, 10) per-sample values in ``_VALUES`` order, in joint units (per frame for MPVPE): MPJPE,
     MPVPE, HandJPE, FootJPE against ``refs`` over the first min(T̂, T) frames (global joints, no
     alignment), then the root-relative path lengths of the left / right hand and foot over the
-    sample's own frames."""
+    sample's own frames, then the mean root-relative speed of the ``boundary`` joints in the sample
+    and in its reference over those shared frames (NaN without boundary joints)."""
     p, n_p = _joints(samples, n_joints)
     g, n_g = _joints(refs, n_joints)
     n = torch.minimum(n_p, n_g)
@@ -201,6 +212,13 @@ def joint_values(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], n_jo
     own = torch.arange(step.shape[1])[None] < (n_p - 1)[:, None]
     path = torch.where(own[..., None], step, 0.0).sum(1)                # (N, J)
     out += [path[:, hands[0]], path[:, hands[1]], path[:, feet[0]], path[:, feet[1]]]
+    shared = frames[:, 1:] < n[:, None]
+    for x in (pc, gc):
+        if boundary:
+            sp = torch.linalg.vector_norm((x - x[..., :1, :])[:, :, list(boundary)].diff(dim=1), dim=-1)
+            out.append(_masked_mean(sp.mean(-1), shared))
+        else:
+            out.append(torch.full((len(n),), float("nan"), dtype=pc.dtype))
     return torch.stack(out, 1).numpy()
 
 
@@ -248,7 +266,8 @@ class InteractionScorer:
         for b in range(0, len(todo), self.batch_size):          # padded batches: bounded memory
             idx = todo[b : b + self.batch_size]
             refs = [ref.feats[i] if ref is not None else s.gt_clip(ms.keys[i]) for i in idx]
-            vals = joint_values([ms.feats[i] for i in idx], refs, self.n_joints, s.hands, s.feet, s.foot_jpe)
+            vals = joint_values([ms.feats[i] for i in idx], refs, self.n_joints, s.hands, s.feet, s.foot_jpe,
+                                s.boundary)
             self.cache.update({pair[i]: v for i, v in zip(idx, vals, strict=True)})
         return np.stack([self.cache[p] for p in pair]) if pair else np.zeros((0, len(_VALUES)))
 
@@ -277,6 +296,10 @@ class InteractionScorer:
         out.update({name: float(x * (s.vel_scale if name == "mpvpe" else s.pos_scale))
                     for name, x in zip(_VALUES[:4], means, strict=True) if np.isfinite(x)})
         out.update(side_accuracy([self.instruction(c) for c in sub.captions], v))
+        b = v[:, 8:10]
+        b = b[np.isfinite(b).all(1)]
+        if len(b) and b[:, 1].sum() > 0:
+            out["boundary_speed"] = float(b[:, 0].sum() / b[:, 1].sum())
         return out
 
 

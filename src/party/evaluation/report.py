@@ -313,7 +313,8 @@ INTERACTION = "interaction"      # party.evaluation.interaction.BLOCK (not impor
 INTERACTION_COLUMNS = (("top1", "R@1 ↑"), ("top2", "R@2 ↑"), ("top3", "R@3 ↑"), ("mm_dist", "MM-Dist ↓"),
                        ("mpjpe", "MPJPE ↓"), ("mpvpe", "MPVPE ↓"), ("hand_jpe", "HandJPE ↓"),
                        ("foot_jpe", "FootJPE ↓"), ("side_acc_arms", "Side acc. arms ↑"),
-                       ("side_acc_legs", "Side acc. legs ↑"))
+                       ("side_acc_legs", "Side acc. legs ↑"),
+                       ("boundary_speed", "Boundary speed →"))
 INTERACTION_NOTE = ("TextIM's metrics (not the ParTY paper's). R@k (`eval.batch_size` candidates) and MM-Dist: the "
                     "whole-body evaluator with the caption's interaction instruction as the text (the full caption "
                     "where it has none). MPJPE (every joint), HandJPE (wrists), FootJPE (feet) and MPVPE (velocity "
@@ -321,7 +322,9 @@ INTERACTION_NOTE = ("TextIM's metrics (not the ParTY paper's). R@k (`eval.batch_
                     "both have; Real motion and reconstructions are compared with the crop they come from (Real motion "
                     "scores 0). Side accuracy (not in the TextIM paper): of the captions whose interaction names "
                     "one side, the share whose named wrist (arms) or foot (legs) travels farther, root-relative. "
-                    "docs/evaluation.md.")
+                    "Boundary speed (not in the paper): the root-relative speed of the collars, shoulders and hips "
+                    "over the ground truth's (1: as fast; a seam between overwritten and generated channels raises "
+                    "it). docs/evaluation.md.")
 
 
 def interaction_table(results: Mapping, description: str = "") -> str:
