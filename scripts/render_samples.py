@@ -1,6 +1,7 @@
 """Ground truth beside every trained generator for the same test captions, as one still image.
 
     .venv/bin/python scripts/render_samples.py [--captions C ...] [--methods party holistic parco party_parts_only]
+                                               [--texts T ... [--frames 120]]
                                                [--at 0.2 0.45 0.7 0.95] [--seed 0] [--cond-scale S]
                                                [--out docs/img/generator_samples.png]
 
@@ -8,7 +9,10 @@ For each caption (a test-split caption, so its ground-truth clip exists; by defa
 per entry of ``DEFAULT_CAPTIONS`` found in the test split), one sample per method is generated at
 the ground truth's length (sampled, seeded, with the generator's ``generate`` settings), and all of
 them are drawn side by side at the fractions ``--at`` of the clip: one row per fraction, the
-caption and the source names over the first. Left limbs are red, right limbs blue. The image is
+caption and the source names over the first. Left limbs are red, right limbs blue. ``--texts``
+draws free texts instead (no ground truth; ``--frames`` long). Any method family is drawn (its
+``TrainedMethod.sample``: token models decode their codes, TextIM and MDM return features), e.g.
+``--methods textim mdm --texts "a person drinks from a cup with the left hand"``. The image is
 README's figure: rerun this after retraining and look at it before saying what it shows.
 """
 from __future__ import annotations
@@ -18,11 +22,10 @@ import re
 from pathlib import Path
 
 import numpy as np
-import torch
 from omegaconf import OmegaConf
 
 from party.data.context import load_context
-from party.generator.generate import embed_texts
+from party.generator.generate import embed_texts, generate_batches
 from party.io import atomic_path
 from party.methods import load_method
 from party.motion.features import recover_from_ric_np
@@ -38,6 +41,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params", default="params.yaml")
     ap.add_argument("--captions", nargs="*", default=None, help="test captions (default: DEFAULT_CAPTIONS)")
+    ap.add_argument("--texts", nargs="*", default=None, help="free texts, drawn without ground truth")
+    ap.add_argument("--frames", type=int, default=120, help="length of the --texts samples")
     ap.add_argument("--methods", nargs="*", default=["party", "holistic", "parco", "party_parts_only"])
     ap.add_argument("--generators", default=None, help="folder of trained methods (default: generator.out_dir)")
     ap.add_argument("--at", nargs="*", type=float, default=[0.2, 0.45, 0.7, 0.95],
@@ -54,7 +59,9 @@ def main() -> None:
     ctx = load_context(cfg)
     test = ctx.index.clips("test")
     by_caption = {c["caption"].strip(): clip for clip in test for c in clip["captions"]}
-    if a.captions:
+    if a.texts:
+        captions = [t.strip() for t in a.texts]
+    elif a.captions:
         missing = [c for c in a.captions if c.strip() not in by_caption]
         if missing:
             raise SystemExit(f"{ctx.index.path}: not test captions: {missing}")
@@ -70,23 +77,24 @@ def main() -> None:
     gcfg = OmegaConf.merge(cfg.generator.generate, {"sampling": "sample"})
     if a.cond_scale is not None:
         gcfg.cond_scale = a.cond_scale
-    emb = torch.as_tensor(embed_texts(cfg, captions), dtype=torch.float32)
-    truth = [recover_from_ric_np(ctx.store.clip_features(by_caption[c]), ctx.n_joints) for c in captions]
+    emb = embed_texts(cfg, captions)
+    truth = None if a.texts else [recover_from_ric_np(ctx.store.clip_features(by_caption[c]), ctx.n_joints)
+                                  for c in captions]
+    frames_of = [a.frames] * len(captions) if truth is None else [len(t) for t in truth]
     samples: dict[str, list[np.ndarray]] = {}
     for m in a.methods:
         trained = load_method(Path(a.generators or cfg.generator.out_dir) / m).bind(ctx)
-        windows = trained.meta["windows"]
-        lengths = {s: torch.tensor([max(1, len(t) // windows[s]) for t in truth]) for s in trained.streams}
-        codes = trained.codes(emb, lengths, gcfg, torch.Generator().manual_seed(a.seed), texts=captions)
-        samples[m] = [recover_from_ric_np(trained.decode({k: v[i] for k, v in codes.items()}), ctx.n_joints)
-                      for i in range(len(captions))]
+        feats = generate_batches(trained, emb, trained.frame_lengths(frames_of), gcfg, progress=False, seed=a.seed,
+                                 texts=captions)
+        samples[m] = [recover_from_ric_np(f, ctx.n_joints) for f in feats]
 
     sheets = []
     for i, caption in enumerate(captions):
-        motions = [truth[i]] + [samples[m][i] for m in a.methods]
+        motions = ([] if truth is None else [truth[i]]) + [samples[m][i] for m in a.methods]
+        names = ([] if truth is None else ["ground truth"]) + list(a.methods)
         n = max(len(x) for x in motions)
         frames = sorted({min(n - 1, int(round(f * (n - 1)))) for f in a.at})
-        sheets.append(render_keyframes(motions, ["ground truth"] + list(a.methods), frames,
+        sheets.append(render_keyframes(motions, names, frames,
                                        skeleton_name=ctx.index.skeleton, title=caption,
                                        panel_px=a.panel_px))
     width = max(s.shape[1] for s in sheets)
@@ -97,7 +105,8 @@ def main() -> None:
     out = Path(a.out)
     with atomic_path(out, suffix=".tmp.png") as tmp:
         Image.fromarray(image).save(tmp)
-    print(f"{out}: {len(captions)} captions x {len(a.at)} frames, ground truth + {', '.join(a.methods)}")
+    print(f"{out}: {len(captions)} captions x {len(a.at)} frames, {'' if truth is None else 'ground truth + '}"
+          f"{', '.join(a.methods)}")
 
 
 if __name__ == "__main__":

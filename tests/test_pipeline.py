@@ -134,6 +134,24 @@ def test_side_check_script_on_the_pipeline_outputs(pipeline):
 
 
 @pytest.mark.slow
+def test_render_samples_draws_any_family_for_test_captions_and_free_texts(pipeline):
+    """scripts/render_samples.py: ground truth beside a token method and the diffusion methods for a
+    test caption; a free text without ground truth."""
+    from PIL import Image
+
+    work, env, _ = pipeline
+    idx = json.loads((work / "data" / "prepared" / "index.json").read_text())
+    cap = next(c["caption"] for clip in idx["clips"] if clip["split"] == "test" for c in clip["captions"])
+    for extra, name in ((["--captions", cap], "gt.png"),
+                        (["--texts", "a person drinks from a cup with the left hand", "--frames", "24"], "free.png")):
+        out = work / "outputs" / name
+        _sh([sys.executable, "scripts/render_samples.py", "--methods", "party", "textim", "mdm", "--at", "0.5",
+             "--panel-px", "64", *extra, "--out", str(out)], work, env)
+        w, h = Image.open(out).size
+        assert w >= (4 if name == "gt.png" else 3) * 64 and h >= 64
+
+
+@pytest.mark.slow
 def test_rerun_is_cached_and_runs_are_tracked(pipeline):
     work, env, _ = pipeline
     again = _sh([str(BIN / "dvc"), "repro"], work, env)

@@ -43,13 +43,11 @@ from torch.nn.utils.rnn import pad_sequence
 
 from party.evaluation import metrics as M
 from party.evaluation.sources import MotionSet
-from party.io import read_json
-from party.text.interactions.prompt import PARTS
+from party.text.interactions.table import read_interactions
 
 log = logging.getLogger(__name__)
 
 BLOCK = "interaction"                 # results[source][BLOCK][metric]; summary.subsets[BLOCK]
-PRODUCER = "party cache_interactions"
 POS_UNITS = {"m": (1.0, "m"), "cm": (100.0, "cm"), "mm": (1000.0, "mm")}
 #: vel_unit -> (factor from metres per frame, times fps?, label)
 VEL_UNITS = {"m_per_frame": (1.0, False, "m per frame"), "cm_per_frame": (100.0, False, "cm per frame"),
@@ -82,38 +80,13 @@ class InteractionData:
 
 
 def load_interactions(folder: str | Path) -> InteractionData:
-    """Read and check ``interactions.json`` and ``subset.json`` of ``folder``; errors name the file."""
-    folder = Path(folder)
-    path = folder / "interactions.json"
-    raw = read_json(path, PRODUCER)
-    if not isinstance(raw, dict):
-        raise ValueError(f"{path}: expected an object {{caption: entry}}, got {type(raw).__name__}")
-    entries = {}
-    for cap, e in raw.items():
-        if not isinstance(e, dict) or not isinstance(e.get("parts"), list):
-            raise ValueError(f"{path}: entry of {cap!r} needs a 'parts' list, got {e!r}")
-        bad = [p for p in e["parts"] if p not in PARTS]
-        if bad:
-            raise ValueError(f"{path}: entry of {cap!r} names unknown parts {bad} (choices: {list(PARTS)})")
-        inter, toks = e.get("inter"), e.get("inter_tokens")
-        if inter is not None and not isinstance(inter, str):
-            raise ValueError(f"{path}: entry of {cap!r}: 'inter' must be a string or null, got {inter!r}")
-        if toks is not None and not (isinstance(toks, list) and all(isinstance(t, str) for t in toks)):
-            raise ValueError(f"{path}: entry of {cap!r}: 'inter_tokens' must be a list of strings or null")
-        entries[cap] = Instruction(frozenset(e["parts"]), inter or None,
-                                   tuple(toks) if toks and inter else None)
-    spath = folder / "subset.json"
-    sub = read_json(spath, PRODUCER)
-    if not isinstance(sub, dict):
-        raise ValueError(f"{spath}: expected an object {{split: [clip ids], description}}, got {type(sub).__name__}")
-    splits = {k: v for k, v in sub.items() if isinstance(v, list)}        # other keys (counts, ...) not read
-    for k, v in splits.items():
-        if not all(isinstance(c, str) for c in v):
-            raise ValueError(f"{spath}: {k!r} must be a list of clip ids")
-    desc = sub.get("description")
-    if not isinstance(desc, str) or not desc.strip():
-        raise ValueError(f"{spath}: 'description' must be a non-empty string")
-    return InteractionData(entries, splits, desc.strip(), folder)
+    """``interactions.json`` and ``subset.json`` of ``folder`` (``party.text.interactions.table``
+    checks them; errors name the file)."""
+    t = read_interactions(folder)
+    entries = {cap: Instruction(frozenset(e["parts"]), e.get("inter") or None,
+                                tuple(e["inter_tokens"]) if e.get("inter_tokens") and e.get("inter") else None)
+               for cap, e in t.rows.items()}
+    return InteractionData(entries, t.splits, t.description, t.folder)
 
 
 @dataclass

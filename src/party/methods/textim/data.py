@@ -1,10 +1,7 @@
 """TextIM's training data: the interactive subset (SPEC-textim §1), one item per (clip, caption).
 
-``InteractionTable`` reads what ``party cache_interactions`` wrote (``<interactions.out_dir>/``):
-
-    interactions.json   {caption: {"parts": [six-part names], "inter": str | null, "non": str | null,
-                                   "fallback": bool}}
-    subset.json         {"train" | "val" | "test": [clip ids of the interactive subset], ...}
+The interaction table and the subset are what ``party cache_interactions`` wrote, read by
+``party.text.interactions.table.read_interactions`` (``InteractionTable``).
 
 An item is the clip's normalised features cropped to ``max_len`` (a random window in training, the
 first in validation), the caption, its interaction mask m over the feature channels (the union of
@@ -15,38 +12,15 @@ batches: the model gathers the vectors.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
 from party.data.datasets import FeatureBank
-from party.io import read_json
 from party.text.interactions.extract import part_mask
+from party.text.interactions.table import PRODUCER, InteractionTable
 
-PRODUCER = "party cache_interactions"
-
-
-class InteractionTable:
-    """Per-caption interactions and the interactive subset of one ``cache_interactions`` output."""
-
-    def __init__(self, folder: str | Path):
-        self.folder = Path(folder)
-        if not (self.folder / "interactions.json").is_file():
-            raise FileNotFoundError(f"{self.folder / 'interactions.json'}: not found; run `{PRODUCER}`")
-        self.rows: dict = read_json(self.folder / "interactions.json", PRODUCER, "an interaction table")
-        self.subset: dict = read_json(self.folder / "subset.json", PRODUCER, "an interactive subset")
-        if not isinstance(self.rows, dict) or not isinstance(self.subset, dict):
-            raise ValueError(f"{self.folder}: interactions.json / subset.json are not objects; rerun `{PRODUCER}`")
-
-    def get(self, caption: str) -> dict | None:
-        return self.rows.get(caption)
-
-    def clip_ids(self, split: str) -> list[str]:
-        if split not in self.subset:
-            raise KeyError(f"{self.folder / 'subset.json'}: no split {split!r} (have {', '.join(self.subset)})")
-        return [str(c) for c in self.subset[split]]
 
 
 class TextTable:

@@ -237,7 +237,8 @@ class TextIMFamily(MethodFamily):
         from party.io import write_json
         from party.methods import method_config
         from party.methods.store import save_weights, write_method_json
-        from party.methods.textim.data import InteractionDataset, InteractionTable, TextTable, collate_interactions
+        from party.methods.textim.data import InteractionDataset, TextTable, collate_interactions
+        from party.text.interactions.table import read_interactions
         from party.motion.parts import group_index
         from party.schema import step_keys
         from party.training import (AtomicCheckpoint, TrainingSession, build_trainer, config_key, data_identity,
@@ -251,7 +252,7 @@ class TextIMFamily(MethodFamily):
         ctx = load_context(cfg)
         groups = group_index(ctx.n_joints, ctx.parts_cfg["groups"][entry["mask_groups"]])
         inter_dir = Path(cfg.interactions.out_dir)
-        table = InteractionTable(inter_dir)
+        table = read_interactions(inter_dir)
         texts = TextTable()
         data = {}
         for split in ("train", t.val_split):
@@ -369,12 +370,12 @@ class TextIMMethod(TrainedMethod):
 
     def bind(self, ctx, tokenizers_dir=None, allow_mismatch: bool = False) -> "TextIMMethod":
         from party import provenance
-        from party.methods.textim.data import InteractionTable
+        from party.text.interactions.table import read_interactions
         self.ctx = ctx
         folder = Path(self.files_dir) / "interactions" if self.files_dir else Path(self.meta["interactions_dir"])
         if self.kind != "mdm":
             provenance.check_generator(self, {"interactions": ("interactions", folder)}, allow_mismatch)
-            self.table = InteractionTable(folder)
+            self.table = read_interactions(folder)
         return self
 
     def package_files(self) -> dict:

@@ -202,7 +202,10 @@ class OpenAIBackend:
             raise TransientError(f"response content is a {type(content).__name__}, not text")
         return content or ""
 
-    def _request(self, body: bytes, res: PartTextResult) -> str:
+    def request(self, body: bytes, res: PartTextResult) -> str:
+        """The answer's text of one chat-completion request ``body`` (JSON bytes), retried on transient
+        failures with backoff (``Retry-After`` honoured); ``res.calls`` / ``res.retries`` count them.
+        Every prompt family on this server calls it (part texts, interactions)."""
         attempt = 0
         while True:
             if self.stop.is_set():
@@ -235,7 +238,7 @@ class OpenAIBackend:
         last = ""
         for _ in range(int(self.cfg.max_format_attempts)):
             try:
-                res.raw = self._request(body, res)
+                res.raw = self.request(body, res)
                 res.parts = parse_answer(res.raw, self.part_names, self.no_movement,
                                          bool(self.cfg.allow_extra_lines))
                 return res

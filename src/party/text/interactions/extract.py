@@ -191,7 +191,7 @@ def _rename(e: Exception) -> str:
 
 class OpenAIInteractionBackend:
     """The interaction prompt on an OpenAI-compatible server, over the part-text backend's HTTP
-    client (``OpenAIBackend._request``: transport retries, key handling, redirect refusal)."""
+    client (``OpenAIBackend.request``: transport retries, key handling, redirect refusal)."""
     name = "openai"
 
     def __init__(self, cfg: InteractionsConfig, stop: threading.Event | None = None):
@@ -222,7 +222,7 @@ class OpenAIInteractionBackend:
         body = json.dumps({"model": self.model, "messages": messages, "temperature": float(temperature),
                            "max_tokens": int(self.cfg.max_tokens)}).encode()
         try:
-            return self._http._request(body, counter if counter is not None else PartTextResult(parts={}))
+            return self._http.request(body, counter if counter is not None else PartTextResult(parts={}))
         except BackendError as e:
             raise BackendError(_rename(e)) from None
 
