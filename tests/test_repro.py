@@ -4,8 +4,10 @@ executable stands in for DVC here; tests/test_pipeline.py runs the real one."""
 import json
 import os
 import subprocess
+import signal
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -151,3 +153,40 @@ def test_the_expected_times_cover_every_stage():
     assert out.returncode == 0, out.stderr
     stages = out.stdout.split()
     assert "generate@party" in stages and set(repro.stage_times(expected, stages)) == set(stages)
+
+
+STAGE = textwrap.dedent("""\
+    import os, subprocess, sys, time
+    # a stand-in for DVC: runs the stage as a child and dies on SIGTERM without passing it on, as DVC does
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    with open(os.environ["FAKE_PIDS"], "a") as f:
+        f.write(f"{child.pid}\\n")
+    child.wait()
+""")
+
+
+def test_sigterm_ends_the_running_stages_under_dvc(tmp_path):
+    """``kill`` of ``party repro`` (SIGTERM) reaches the stages DVC runs, not only DVC: no stage is
+    left running without the command that started it."""
+    script = tmp_path / "dvc"
+    script.write_text(f"#!{sys.executable}\n" + STAGE)
+    script.chmod(0o755)
+    pids = tmp_path / "pids"
+    code = (f"from party import repro; repro.run({{'a': [], 'b': []}}, 2, dvc={str(script)!r}, "
+            f"log_dir=__import__('pathlib').Path({str(tmp_path / 'logs')!r}))")
+    proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "FAKE_PIDS": str(pids)},
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(pids.read_text().split() if pids.exists() else []) < 2:
+        time.sleep(0.1)
+    stages = [int(x) for x in pids.read_text().split()]
+    assert len(stages) == 2
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode != 0 and "Terminated" in err
+    for pid in stages:                     # the stages are gone (reaped or not: no longer running)
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+        except FileNotFoundError:
+            continue
+        assert state in ("Z", "X"), (pid, state)

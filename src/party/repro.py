@@ -28,6 +28,7 @@ ones finish), as ``dvc repro`` does; ``--keep-going`` runs every stage that does
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -213,6 +214,17 @@ def _tail(path: Path, n: int = 30) -> str:
         return ""
 
 
+def _wait_group(pgid: int, timeout_s: float = 120.0) -> None:
+    """Wait until no process of the group ``pgid`` is left (a stage ending its run after SIGTERM)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            os.killpg(pgid, 0)
+        except (ProcessLookupError, PermissionError):
+            return
+        time.sleep(0.2)
+
+
 def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: str = "dvc",
         log_dir: Path = LOG_DIR, extra: list[str] | None = None) -> dict:
     """Run every stage of ``graph`` (stage -> deps) through DVC, at most ``jobs`` at a time.
@@ -227,6 +239,9 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     result: dict[str, dict] = {}
     failed = False
     t0 = time.monotonic()
+    from party.lifecycle import terminate_on_sigterm
+    sigterm = contextlib.ExitStack()
+    sigterm.enter_context(terminate_on_sigterm())   # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
     try:
         while pending or running:
             if not failed or keep_going:
@@ -245,8 +260,11 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                     log = log_dir / f"{s}.log"
                     out = open(log, "w") if jobs > 1 else None
                     cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
+                    # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
+                    # without passing it on)
                     running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
-                                                   if out else None), time.monotonic(), log, out)
+                                                   if out else None, start_new_session=True),
+                                  time.monotonic(), log, out)
                     print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
             elif not running:
                 for s in pending:
@@ -277,11 +295,15 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                 print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
     except KeyboardInterrupt:
         for s, (p, *_rest) in running.items():
-            p.send_signal(signal.SIGTERM)     # stages end their MLflow runs KILLED on SIGTERM
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)   # stages end their MLflow runs KILLED on SIGTERM
             result[s] = {"status": "failed", "seconds": 0.0}
         for p, *_rest in running.values():
             p.wait()
+            _wait_group(p.pid)
         raise
+    finally:
+        sigterm.close()
     summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1),
                "stages": {s: result[s] for s in graph if s in result}, "machine": machine}
     (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
