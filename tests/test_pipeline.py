@@ -232,7 +232,9 @@ def test_queued_experiment_keeps_the_choices_and_shows_its_metrics(pipeline):
     reps = int(params["eval"]["replications"]) + 1
     _sh([str(BIN / "dvc"), "exp", "run", "--queue", "-n", "more-reps", "-S", f"eval.replications={reps}"],
         work, env)
-    _sh([str(BIN / "dvc"), "exp", "run", "--run-all"], work, env)
+    # the queued run starts from a clean copy of the repository and reruns the whole layered pipeline (as
+    # long as the fixture's `dvc repro`), and the stages' own checks besides: a larger limit than one call's
+    _sh([str(BIN / "dvc"), "exp", "run", "--run-all"], work, env, timeout=2700)
     shown = json.loads(_sh([str(BIN / "dvc"), "exp", "show", "--json"], work, env).stdout)
     exps = [r for row in shown for e in (row.get("experiments") or []) for r in e["revs"]
             if r["name"] == "more-reps"]
