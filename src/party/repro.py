@@ -240,70 +240,67 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     failed = False
     t0 = time.monotonic()
     from party.lifecycle import terminate_on_sigterm
-    sigterm = contextlib.ExitStack()
-    sigterm.enter_context(terminate_on_sigterm())   # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
-    try:
-        while pending or running:
-            if not failed or keep_going:
-                ready = []
-                for s in sorted(pending, key=lambda s: -prio[s]):
-                    if any(result.get(d, {}).get("status") in ("failed", "blocked") for d in graph[s]):
+    with terminate_on_sigterm():        # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
+        try:
+            while pending or running:
+                if not failed or keep_going:
+                    ready = []
+                    for s in sorted(pending, key=lambda s: -prio[s]):
+                        if any(result.get(d, {}).get("status") in ("failed", "blocked") for d in graph[s]):
+                            pending.discard(s)
+                            result[s] = {"status": "blocked", "seconds": 0.0}
+                            print(f"party repro: {s}: not run ({', '.join(graph[s])} failed)", flush=True)
+                        elif all(result.get(d, {}).get("status") in OK for d in graph[s]):
+                            ready.append(s)
+                    ready = ready[:max(0, jobs - len(running))]
+                    env = child_env(jobs, len(running) + len(ready))
+                    for s in ready:
                         pending.discard(s)
-                        result[s] = {"status": "blocked", "seconds": 0.0}
-                        print(f"party repro: {s}: not run ({', '.join(graph[s])} failed)", flush=True)
-                    elif all(result.get(d, {}).get("status") in OK for d in graph[s]):
-                        ready.append(s)
-                ready = ready[:max(0, jobs - len(running))]
-                env = child_env(jobs, len(running) + len(ready))
-                for s in ready:
-                    pending.discard(s)
-                    log = log_dir / f"{s}.log"
-                    out = open(log, "w") if jobs > 1 else None
-                    cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
-                    # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
-                    # without passing it on)
-                    running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
-                                                   if out else None, start_new_session=True),
-                                  time.monotonic(), log, out)
-                    print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
-            elif not running:
-                for s in pending:
-                    result[s] = {"status": "not started", "seconds": 0.0}
-                break
-            if not running:
-                if pending:      # nothing runnable and nothing running: the rest is blocked
-                    continue
-                break
-            time.sleep(0.5)
-            for s, (p, start, log, out) in list(running.items()):
-                if p.poll() is None:
-                    continue
-                secs = round(time.monotonic() - start, 1)
-                if out:
-                    out.close()
-                del running[s]
-                if p.returncode != 0:
-                    failed = True
-                    result[s] = {"status": "failed", "seconds": secs}
-                    tail = _tail(log) if jobs > 1 else ""
-                    print(f"party repro: {s}: FAILED after {secs:.0f} s (exit {p.returncode})"
-                          + (f"; last lines of {log}:\n{tail}" if tail else ""), file=sys.stderr, flush=True)
-                    continue
-                status = "done" if jobs == 1 else (
-                    "unchanged" if SKIPPED_MARK in log.read_text(errors="replace") else "ran")
-                result[s] = {"status": status, "seconds": secs}
-                print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
-    except KeyboardInterrupt:
-        for s, (p, *_rest) in running.items():
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)   # stages end their MLflow runs KILLED on SIGTERM
-            result[s] = {"status": "failed", "seconds": 0.0}
-        for p, *_rest in running.values():
-            p.wait()
-            _wait_group(p.pid)
-        raise
-    finally:
-        sigterm.close()
+                        log = log_dir / f"{s}.log"
+                        out = open(log, "w") if jobs > 1 else None
+                        cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
+                        # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
+                        # without passing it on)
+                        running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
+                                                       if out else None, start_new_session=True),
+                                      time.monotonic(), log, out)
+                        print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
+                elif not running:
+                    for s in pending:
+                        result[s] = {"status": "not started", "seconds": 0.0}
+                    break
+                if not running:
+                    if pending:      # nothing runnable and nothing running: the rest is blocked
+                        continue
+                    break
+                time.sleep(0.5)
+                for s, (p, start, log, out) in list(running.items()):
+                    if p.poll() is None:
+                        continue
+                    secs = round(time.monotonic() - start, 1)
+                    if out:
+                        out.close()
+                    del running[s]
+                    if p.returncode != 0:
+                        failed = True
+                        result[s] = {"status": "failed", "seconds": secs}
+                        tail = _tail(log) if jobs > 1 else ""
+                        print(f"party repro: {s}: FAILED after {secs:.0f} s (exit {p.returncode})"
+                              + (f"; last lines of {log}:\n{tail}" if tail else ""), file=sys.stderr, flush=True)
+                        continue
+                    status = "done" if jobs == 1 else (
+                        "unchanged" if SKIPPED_MARK in log.read_text(errors="replace") else "ran")
+                    result[s] = {"status": status, "seconds": secs}
+                    print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
+        except KeyboardInterrupt:
+            for s, (p, *_rest) in running.items():
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGTERM)   # stages end their MLflow runs KILLED on SIGTERM
+                result[s] = {"status": "failed", "seconds": 0.0}
+            for p, *_rest in running.values():
+                p.wait()
+                _wait_group(p.pid)
+            raise
     summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1),
                "stages": {s: result[s] for s in graph if s in result}, "machine": machine}
     (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
