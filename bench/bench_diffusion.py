@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import platform
 import time
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from omegaconf import OmegaConf
 from party.methods.textim.family import model_config
 from party.methods.textim.model import MDM, TextIM
 from party.motion.parts import group_index
+from party.repro import cpu_model
 from party.text.interactions.extract import part_mask
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,14 +49,6 @@ def entries(profile: str) -> dict:
         cfg = OmegaConf.merge(cfg, over)
     root = OmegaConf.create({"generator": cfg})            # the profiles interpolate generator.methods.*
     return {m: OmegaConf.to_container(root.generator.methods[m], resolve=True) for m in ("textim", "mdm")}
-
-
-def cpu_model() -> str:
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or "?"
 
 
 def main() -> None:
