@@ -713,6 +713,7 @@ class EvalInteraction:                      # eval.interaction: party.evaluation
     foot_joints: List[int] = MISSING        # [left, right]
     foot_with_ankles: bool = MISSING
     boundary_joints: List[int] = MISSING    # where the parts meet: boundary speed
+    seam_bones: List[List[int]] = MISSING   # [parent, child] bones joining two parts: seam bone error
     pos_unit: str = _choice("m", "cm", "mm")
     vel_unit: str = _choice("cm_per_frame", "m_per_frame", "mm_per_frame", "m_per_s")
 

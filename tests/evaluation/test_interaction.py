@@ -24,6 +24,7 @@ HAND = {"left": 20, "right": 21}
 FOOT = {"left": 10, "right": 11}
 RIC = 4                                   # features: root (4), then ric positions of joints 1..J-1
 BOUNDARY = (13, 14, 16, 17, 1, 2)         # collars, shoulders, hips
+SEAMS = ((9, 13), (9, 14), (0, 1), (0, 2))  # spine3-collars, pelvis-hips
 
 
 def feats(arm: str, leg: str, n: int, seed: int) -> np.ndarray:
@@ -48,12 +49,12 @@ def write_cache(folder: Path, entries: dict, splits: dict, description: str = "i
 
 
 def setup_of(tmp: Path, clips: dict[str, np.ndarray], entries: dict, scored=None, pos_scale=1.0,
-             vel_scale=100.0, foot_jpe=(10, 11), boundary=BOUNDARY) -> InteractionSetup:
+             vel_scale=100.0, foot_jpe=(10, 11), boundary=BOUNDARY, seams=SEAMS) -> InteractionSetup:
     """A setup over an in-memory set of whole ground-truth clips ({clip id: features})."""
     ids = sorted(clips) if scored is None else scored
     data = load_interactions(write_cache(tmp / "interactions", entries, {"test": ids}))
     return InteractionSetup(data, frozenset(ids), clips.__getitem__, (20, 21), (10, 11), tuple(foot_jpe),
-                            tuple(boundary), pos_scale, vel_scale, "interactive clips")
+                            tuple(boundary), tuple(seams), pos_scale, vel_scale, "interactive clips")
 
 
 def motion_set(clips: dict[str, np.ndarray], captions: dict[str, str], ids=None) -> MotionSet:
@@ -97,7 +98,7 @@ def test_ground_truth_against_itself_scores_zero_and_its_own_side_accuracy(motio
     own = scorer(gt, gt, None, CFG, np.random.default_rng(0))
     for k in ("mpjpe", "mpvpe", "hand_jpe", "foot_jpe"):
         assert own[k] == 0.0, k
-    assert own["boundary_speed"] == 1.0                                 # as fast as itself
+    assert own["boundary_speed"] == 1.0 and own["seam_bone"] == 0.0     # as fast as itself, the same bones
     whole = scorer(gt, None, None, CFG, np.random.default_rng(0))      # the whole clips from the setup: same
     assert whole == own
     batched = InteractionScorer(scorer.setup, 22, batch_size=5)         # in padded batches of 5: the same
@@ -186,6 +187,37 @@ def test_boundary_speed_is_the_ratio_of_boundary_joint_speeds(motions, tmp_path)
     assert calm["boundary_speed"] == pytest.approx(1.0, abs=1e-9) and calm["hand_jpe"] > 0
     none = InteractionScorer(setup_of(tmp_path / "b", gt, {}, boundary=()), 22)
     assert "boundary_speed" not in none(motion_set(seam, caps), None, None, CFG, np.random.default_rng(0))
+
+
+def test_seam_bone_error_is_the_relative_length_error_of_the_bones_joining_parts(motions, tmp_path):
+    """A collar moved away from spine3 (an arm overwritten from elsewhere) raises the seam bone error
+    to its frame-loop value (the whole arm moved with it, rigidly); a wrist moved leaves it at 0;
+    without seam bones it is absent."""
+    ids = sorted(motions)[:3]
+    gt = {c: motions[c] for c in ids}
+    caps = {c: f"a person does motion {c}" for c in ids}
+    shift = np.array([0.0, 0.05, 0.03], np.float32)
+    collar = {c: f.copy() for c, f in gt.items()}
+    wrist = {c: f.copy() for c, f in gt.items()}
+    for c in ids:
+        for j in (13, 16, 18, 20):                                  # the left arm, collar to wrist, moved as one
+            collar[c][:, ric(j)] += shift
+        wrist[c][:, ric(20)] += shift
+    scorer = InteractionScorer(setup_of(tmp_path, gt, {}), 22)
+
+    def seam_err(f, g):
+        p = recover_from_ric(torch.from_numpy(f.astype(np.float64)), 22).numpy()
+        q = recover_from_ric(torch.from_numpy(g.astype(np.float64)), 22).numpy()
+        return np.mean([np.mean([abs(np.linalg.norm(p[t, b] - p[t, a]) - np.linalg.norm(q[t, b] - q[t, a]))
+                                 / np.linalg.norm(q[t, b] - q[t, a]) for a, b in SEAMS]) for t in range(len(g))])
+
+    out = scorer(motion_set(collar, caps), None, None, CFG, np.random.default_rng(0))
+    expect = np.mean([seam_err(collar[c], gt[c]) for c in ids])
+    assert out["seam_bone"] == pytest.approx(expect, rel=1e-9) and expect > 0.03
+    calm = scorer(motion_set(wrist, caps), None, None, CFG, np.random.default_rng(0))
+    assert calm["seam_bone"] == pytest.approx(0.0, abs=1e-6) and calm["hand_jpe"] > 0
+    none = InteractionScorer(setup_of(tmp_path / "b", gt, {}, seams=()), 22)
+    assert "seam_bone" not in none(motion_set(collar, caps), None, None, CFG, np.random.default_rng(0))
 
 
 # --------------------------------------------------------------------------- side accuracy
@@ -404,6 +436,10 @@ def test_setup_from_config_reads_the_cache_folder(prepared, tmp_path):
     with pytest.raises(ValueError, match="eval.interaction.boundary_joints"):
         InteractionSetup.from_config({**c, "boundary_joints": [13, 40]}, ctx, "test")
     assert InteractionSetup.from_config(c, ctx, "test").boundary == BOUNDARY
+    for bad in ([[9, 40]], [[9, 9]], [[9]]):
+        with pytest.raises(ValueError, match="eval.interaction.seam_bones"):
+            InteractionSetup.from_config({**c, "seam_bones": bad}, ctx, "test")
+    assert InteractionSetup.from_config(c, ctx, "test").seams == SEAMS
     write_cache(folder, {cap: entry(["left_hand"])}, {"test": ids})
     with pytest.raises(ValueError, match=r"interactions.json: entry of .* unknown parts \['left_hand'\]"):
         InteractionSetup.from_config(c, ctx, "test")
@@ -478,7 +514,8 @@ def test_conf_keys_and_schema():
     c = compose([], ROOT / "conf").eval.interaction
     assert OmegaConf.to_container(c) == {"enabled": True, "dir": "data/interactions", "hand_joints": [20, 21],
                                          "foot_joints": [10, 11], "foot_with_ankles": False,
-                                         "boundary_joints": list(BOUNDARY), "pos_unit": "m",
+                                         "boundary_joints": list(BOUNDARY),
+                                         "seam_bones": [list(b) for b in SEAMS], "pos_unit": "m",
                                          "vel_unit": "cm_per_frame"}
     with pytest.raises(ConfigError, match="eval.interaction.pos_unit"):
         compose(["eval.interaction.pos_unit=km"], ROOT / "conf")

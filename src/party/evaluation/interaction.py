@@ -15,7 +15,11 @@ tokenizer's reconstructions, every generated run), per replication, from the pro
 - boundary speed (not in the paper; SPEC-textim §11 item 10): the mean root-relative speed of the
   joints where the parts meet (``boundary_joints``: collars, shoulders, hips) over the reference's
   at the same frames, a ratio of means (1: as fast as the ground truth; a seam that jitters when
-  the interacting channels are overwritten raises it).
+  the interacting channels are overwritten raises it);
+- seam bone error (not in the paper): for the bones that join two parts (``seam_bones``: spine3 to
+  the collars, pelvis to the hips, [parent, child] pairs), the mean of |L̂_t − L_t| / L_t over the
+  frames both motions have and those bones, L the bone's length; 0 for a body that holds together
+  where the parts meet, whatever it does (a slow sample cannot score well on it by standing still).
 
 The reference of a sample (Decision): a generated sample is compared with the whole ground-truth
 clip of its clip id (``DataContext.store``), both from their first frame, as a generator starts
@@ -54,7 +58,7 @@ VEL_UNITS = {"m_per_frame": (1.0, False, "m per frame"), "cm_per_frame": (100.0,
              "mm_per_frame": (1000.0, False, "mm per frame"), "m_per_s": (1.0, True, "m/s")}
 #: per-sample values kept in the memo, in this order
 _VALUES = ("mpjpe", "mpvpe", "hand_jpe", "foot_jpe", "path_left_hand", "path_right_hand", "path_left_foot",
-           "path_right_foot", "boundary_speed", "boundary_speed_ref")
+           "path_right_foot", "boundary_speed", "boundary_speed_ref", "seam_bone")
 
 
 @dataclass(frozen=True)
@@ -99,6 +103,7 @@ class InteractionSetup:
     feet: tuple[int, int]                       # (left, right) feet
     foot_jpe: tuple[int, ...]                   # FootJPE's joints
     boundary: tuple[int, ...]                   # the joints where the parts meet (boundary speed)
+    seams: tuple[tuple[int, int], ...]          # the bones joining two parts, (parent, child) (seam bone error)
     pos_scale: float                            # joint units -> pos_unit
     vel_scale: float                            # joint units per frame -> vel_unit
     description: str                            # the subset's, its clip count and the units: the table's title
@@ -136,6 +141,10 @@ class InteractionSetup:
         if not all(0 <= x < n_joints for x in boundary):
             raise ValueError(f"eval.interaction.boundary_joints: joints of the {n_joints}-joint skeleton, "
                              f"got {list(c['boundary_joints'])}")
+        seams = tuple(tuple(int(x) for x in bone) for bone in c["seam_bones"])
+        if not all(len(b) == 2 and b[0] != b[1] and all(0 <= x < n_joints for x in b) for b in seams):
+            raise ValueError(f"eval.interaction.seam_bones: [parent, child] pairs of two joints of the {n_joints}-joint "
+                             f"skeleton, got {[list(x) for x in c['seam_bones']]}")
         if c["pos_unit"] not in POS_UNITS or c["vel_unit"] not in VEL_UNITS:
             raise ValueError(f"eval.interaction: pos_unit one of {list(POS_UNITS)}, vel_unit one of "
                              f"{list(VEL_UNITS)}; got {c['pos_unit']!r}, {c['vel_unit']!r}")
@@ -143,7 +152,7 @@ class InteractionSetup:
         vel, per_s, vel_label = VEL_UNITS[c["vel_unit"]]
         vel_scale = float(length_unit) * vel * (float(ctx.index.fps) if per_s else 1.0)
         return cls(data, frozenset(ids), lambda cid: ctx.store.clip_features(by_id[cid]), pairs["hand_joints"],
-                   feet, tuple(foot_jpe), boundary, float(length_unit) * pos, vel_scale,
+                   feet, tuple(foot_jpe), boundary, seams, float(length_unit) * pos, vel_scale,
                    f"{data.description} ({len(set(ids))} {split} clips; positions in {pos_label}, "
                    f"velocities in {vel_label})")
 
@@ -163,12 +172,13 @@ def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 def joint_values(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], n_joints: int,
                  hands: tuple[int, int], feet: tuple[int, int], foot_jpe: Sequence[int],
-                 boundary: Sequence[int] = ()) -> np.ndarray:
-    """(N, 10) per-sample values in ``_VALUES`` order, in joint units (per frame for MPVPE): MPJPE,
+                 boundary: Sequence[int] = (), seams: Sequence[tuple[int, int]] = ()) -> np.ndarray:
+    """(N, 11) per-sample values in ``_VALUES`` order, in joint units (per frame for MPVPE): MPJPE,
     MPVPE, HandJPE, FootJPE against ``refs`` over the first min(T̂, T) frames (global joints, no
     alignment), then the root-relative path lengths of the left / right hand and foot over the
     sample's own frames, then the mean root-relative speed of the ``boundary`` joints in the sample
-    and in its reference over those shared frames (NaN without boundary joints)."""
+    and in its reference over those shared frames (NaN without boundary joints), then the mean
+    relative length error of the ``seams`` bones over those frames (NaN without seam bones)."""
     p, n_p = _joints(samples, n_joints)
     g, n_g = _joints(refs, n_joints)
     n = torch.minimum(n_p, n_g)
@@ -192,6 +202,14 @@ def joint_values(samples: Sequence[np.ndarray], refs: Sequence[np.ndarray], n_jo
             out.append(_masked_mean(sp.mean(-1), shared))
         else:
             out.append(torch.full((len(n),), float("nan"), dtype=pc.dtype))
+    if seams:
+        par, child = [a for a, _ in seams], [b for _, b in seams]
+        length_p = torch.linalg.vector_norm(pc[:, :, child] - pc[:, :, par], dim=-1)     # (N, T, bones)
+        length_g = torch.linalg.vector_norm(gc[:, :, child] - gc[:, :, par], dim=-1)
+        err = (length_p - length_g).abs() / length_g.clamp_min(1e-9)
+        out.append(_masked_mean(err.mean(-1), valid))
+    else:
+        out.append(torch.full((len(n),), float("nan"), dtype=pc.dtype))
     return torch.stack(out, 1).numpy()
 
 
@@ -240,7 +258,7 @@ class InteractionScorer:
             idx = todo[b : b + self.batch_size]
             refs = [ref.feats[i] if ref is not None else s.gt_clip(ms.keys[i]) for i in idx]
             vals = joint_values([ms.feats[i] for i in idx], refs, self.n_joints, s.hands, s.feet, s.foot_jpe,
-                                s.boundary)
+                                s.boundary, s.seams)
             self.cache.update({pair[i]: v for i, v in zip(idx, vals, strict=True)})
         return np.stack([self.cache[p] for p in pair]) if pair else np.zeros((0, len(_VALUES)))
 
@@ -273,6 +291,9 @@ class InteractionScorer:
         b = b[np.isfinite(b).all(1)]
         if len(b) and b[:, 1].sum() > 0:
             out["boundary_speed"] = float(b[:, 0].sum() / b[:, 1].sum())
+        seam = v[:, 10][np.isfinite(v[:, 10])]
+        if len(seam):
+            out["seam_bone"] = float(seam.mean())
         return out
 
 

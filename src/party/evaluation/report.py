@@ -314,7 +314,7 @@ INTERACTION_COLUMNS = (("top1", "R@1 ↑"), ("top2", "R@2 ↑"), ("top3", "R@3 �
                        ("mpjpe", "MPJPE ↓"), ("mpvpe", "MPVPE ↓"), ("hand_jpe", "HandJPE ↓"),
                        ("foot_jpe", "FootJPE ↓"), ("side_acc_arms", "Side acc. arms ↑"),
                        ("side_acc_legs", "Side acc. legs ↑"),
-                       ("boundary_speed", "Boundary speed →"))
+                       ("boundary_speed", "Boundary speed →"), ("seam_bone", "Seam bone error ↓"))
 INTERACTION_NOTE = ("TextIM's metrics (not the ParTY paper's). R@k (`eval.batch_size` candidates) and MM-Dist: the "
                     "whole-body evaluator with the caption's interaction instruction as the text (the full caption "
                     "where it has none). MPJPE (every joint), HandJPE (wrists), FootJPE (feet) and MPVPE (velocity "
@@ -324,7 +324,9 @@ INTERACTION_NOTE = ("TextIM's metrics (not the ParTY paper's). R@k (`eval.batch_
                     "one side, the share whose named wrist (arms) or foot (legs) travels farther, root-relative. "
                     "Boundary speed (not in the paper): the root-relative speed of the collars, shoulders and hips "
                     "over the ground truth's (1: as fast; a seam between overwritten and generated channels raises "
-                    "it). docs/evaluation.md.")
+                    "it). Seam bone error (not in the paper): the relative length error of the bones that join two "
+                    "parts (spine3 to the collars, pelvis to the hips; 0: the body holds together there, however "
+                    "much it moves). docs/evaluation.md.")
 
 
 def interaction_table(results: Mapping, description: str = "") -> str:
