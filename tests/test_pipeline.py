@@ -250,6 +250,14 @@ def test_queued_experiment_keeps_the_choices_and_shows_its_metrics(pipeline):
             "select s.value from tags e join tags s on s.run_uuid = e.run_uuid "
             "where e.key = 'party.dvc_exp_name' and e.value = 'more-reps' and s.key = 'party.stage'")}
     assert stages == {"evaluate"}, stages          # every other stage's outputs came from the cache
+    # DVC composed the experiment's params.yaml itself: the secret the config reads stays a reference
+    exp_ref = _sh(["git", "for-each-ref", "--format=%(refname)", "refs/exps"], work, env).stdout.split()
+    exp_params = _sh(["git", "show", f"{next(r for r in exp_ref if r.endswith('/more-reps'))}:params.yaml"],
+                     work, env).stdout
+    assert "${oc.env:PARTY_E2E_SECRET}" in exp_params and SECRET not in exp_params
+    with sqlite3.connect(work / "mlruns/mlflow.db") as con:
+        leaked = con.execute("select key from params where value like ?", (f"%{SECRET}%",)).fetchall()
+    assert not leaked, leaked
 
 
 @pytest.mark.slow

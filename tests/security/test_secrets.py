@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from omegaconf import OmegaConf
 
 from party.config import load_params, write_params
 from party.schema import ConfigError
@@ -36,6 +37,45 @@ def test_params_yaml_keeps_values_from_the_environment_unresolved(tmp_path, secr
     assert pt["model"] == "${oc.env:PARTY_TEST_SECRET}"
     assert pt["api_key_env"] == "${part_texts.model}"          # an interpolation that reads the environment
     cfg = load_params(p)                                       # the stage resolves it from its own environment
+    assert cfg.part_texts.base_url.endswith(f"api_key={SECRET}") and cfg.part_texts.api_key_env == SECRET
+
+
+_DVC_COMPOSE = """
+import sys
+from dvc.repo import Repo
+from dvc.utils.hydra import compose_and_dump
+root, out, plugins = sys.argv[1:4]
+hydra = Repo(root).config["hydra"]       # what `dvc exp run -S` reads (dvc.repo.experiments.queue.base)
+assert hydra["enabled"], hydra
+compose_and_dump(out, f"{root}/conf", None, "config", f"{root}/{hydra.get('plugins_path', '')}" if plugins else root,
+                 sys.argv[4:])
+"""
+
+
+@pytest.mark.parametrize("plugins", [True, False])
+def test_dvc_experiment_composition_keeps_values_from_the_environment_unresolved(tmp_path, secret_env, plugins):
+    """`dvc exp run -S` composes conf/ with DVC's own code, which resolves the config before writing
+    params.yaml into the experiment's commit: the Hydra plugin .dvc/config names keeps each
+    ${oc.env:...} a reference there, as `party params` does (without it the secret is written)."""
+    import subprocess
+    import sys
+    out = tmp_path / "params.yaml"
+    subprocess.run([sys.executable, "-c", _DVC_COMPOSE, str(ROOT), str(out), "1" if plugins else "",
+                    URL, MODEL, "+part_texts.api_key_env=${part_texts.model}",
+                    "+fallback=${oc.env:PARTY_TEST_UNSET,'a,b'}"], check=True, cwd=tmp_path)
+    text = out.read_text()
+    if not plugins:                          # DVC's composition alone: the control
+        assert SECRET in text
+        return
+    assert SECRET not in text
+    params = yaml.safe_load(text)
+    fallback = params.pop("fallback")                          # a default kept with its reference
+    assert OmegaConf.create({"x": fallback}).x == "a,b"
+    pt = params["part_texts"]
+    assert pt["base_url"] == "http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_TEST_SECRET}"
+    assert pt["model"] == pt["api_key_env"] == "${oc.env:PARTY_TEST_SECRET}"
+    out.write_text(yaml.safe_dump(params))
+    cfg = load_params(out)                                     # a stage resolves them from its environment
     assert cfg.part_texts.base_url.endswith(f"api_key={SECRET}") and cfg.part_texts.api_key_env == SECRET
 
 
