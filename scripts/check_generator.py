@@ -138,13 +138,16 @@ def main() -> None:
                                     "holistic_kept_if_parts_kept": float(ok[pok].mean()) if pok.any() else None,
                                     "holistic_kept_if_not": float(ok[~pok].mean()) if (~pok).any() else None}
         pairs = swapped_pairs(oks)
+        # a method with its own guidance scale (the diffusion family's `guidance`) ignores the token
+        # generators' cond_scale / part_cond_scale and sampling: say what it used
+        guidance = trained.meta.get("guidance")
+        used = ({"guidance": float(guidance)} if guidance is not None else
+                {"sampling": a.sampling, "cond_scale": float(gcfg.cond_scale),
+                 "part_cond_scale": gcfg.get("part_cond_scale")})
         report[m] = {"prompts": rows, "mean": float(np.mean([r["kept"] for r in rows.values()])),
                      "swapped_pairs": pairs,
-                     "other_side": float(np.mean([r["other_side"] for r in rows.values()])),
-                     "sampling": a.sampling, "cond_scale": float(gcfg.cond_scale),
-                     "part_cond_scale": gcfg.get("part_cond_scale")}
-        print(f"{m} ({a.sampling}, cond_scale {float(gcfg.cond_scale):g}, part_cond_scale "
-              f"{gcfg.get('part_cond_scale')}): "
+                     "other_side": float(np.mean([r["other_side"] for r in rows.values()])), **used}
+        print(f"{m} ({', '.join(f'{k} {v:g}' if isinstance(v, float) else f'{k} {v}' for k, v in used.items())}): "
               + "; ".join(f"{r['kind']}-{r['side']} {r['kept']:.0%}" for r in rows.values())
               + f" | mean {report[m]['mean']:.0%} (other side instead: {report[m]['other_side']:.0%})"
               + "; swapped pairs " + ", ".join(f"{k} {v:.0%}" for k, v in pairs.items()))

@@ -169,7 +169,7 @@ def load(source: str | Path | None = None, *, params=None, allow_mismatch: bool 
     from party.data.context import load_context
     from party.generator.generate import embed_texts
     from party.methods import load_method
-    trained = provenance.attach(load_method(folder, plugins=plugins), folder)
+    trained = load_method(folder, plugins=plugins)
     provenance.check_embeddings(trained, cfg.text.embeddings_dir, allow)
     ctx = load_context(cfg)
     trained.bind(ctx, allow_mismatch=allow)

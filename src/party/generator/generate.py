@@ -77,7 +77,7 @@ def generate_run(cfg, method: str, out_dir: str | Path, progress: bool) -> dict:
     g, gc = cfg.generator, cfg.generator.generate
     entry = method_config(g, method)
     folder = Path(g.out_dir) / method
-    trained = provenance.attach(load_method(folder, plugins=g.get("plugins") or ()), folder)
+    trained = load_method(folder, plugins=g.get("plugins") or ())
     provenance.check_embeddings(trained, cfg.text.embeddings_dir, bool(g.allow_mismatch))
     ctx = load_context(cfg)
     clips = ctx.index.clips(gc.split)

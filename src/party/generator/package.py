@@ -42,7 +42,7 @@ def build_package(cfg, method: str, out: Path) -> dict:
 
     g = cfg.generator
     src = Path(g.out_dir) / method
-    trained = provenance.attach(load_method(src, plugins=g.get("plugins") or ()), src)
+    trained = load_method(src, plugins=g.get("plugins") or ())
     if not trained.reads_text:
         raise ValueError(f"{src}: this baseline reads no text; register a trained method")
     ctx = load_context(cfg)
@@ -85,7 +85,6 @@ def load_package(path: str | Path, plugins=(), allow_mismatch: bool = False):
     config, info) of a package. A plug-in family's modules come from the caller (``plugins``:
     the local ``generator.plugins``), never from the package's files. The tokenizers must be the
     ones the method recorded (``party.provenance``), unless ``allow_mismatch``."""
-    from party import provenance
     from party.data.context import DataContext
     from party.data.datasets import MotionStore, Normalizer
     from party.data.index import Index
@@ -101,7 +100,7 @@ def load_package(path: str | Path, plugins=(), allow_mismatch: bool = False):
     index = Index(d["name"], str(path / "stats"), d["fps"], d["feat_dim"], d["n_joints"], d["skeleton"], [])
     ctx = DataContext(index, MotionStore(index.root, d["feat_dim"]), Normalizer.load(path / "stats", d["feat_dim"]),
                       PartLayout.from_config(info["parts"], d["n_joints"]), info["parts"])
-    trained = provenance.attach(load_method(path / "generator", plugins=plugins), path / "generator")
+    trained = load_method(path / "generator", plugins=plugins)
     if (path / "files").is_dir():
         trained.files_dir = str(path / "files")
     trained.bind(ctx, path / "tokenizers", allow_mismatch=allow_mismatch)

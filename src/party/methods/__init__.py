@@ -121,11 +121,13 @@ def family_of(g, method: str) -> type["MethodFamily"]:
 def load_method(folder, map_location: str = "cpu", plugins: Iterable[str] = ()):
     """The trained method in ``folder`` (``<generator.out_dir>/<method>`` or a package's
     ``generator/``), loaded by its family (``method.json``; older folders are recognised by
-    the family that wrote them)."""
+    the family that wrote them), knowing its folder and the record of what it was built from
+    (``party.provenance.attach``)."""
+    from party import provenance
     from party.methods.store import read_family
     from party.names import check_name
     load_plugins(plugins)
     trained = family(read_family(folder, _FAMILIES.values())).load(folder, map_location)
     for s in [*trained.meta.get("streams", ()), *getattr(trained, "streams", ())]:   # <tokenizers>/<stream>/
         check_name(s, "stream of the trained method", str(folder))
-    return trained
+    return provenance.attach(trained, folder)
