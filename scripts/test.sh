@@ -18,4 +18,7 @@ if [ -z "${PARTY_NO_SLURM:-}" ]; then
     echo "no local SLURM cluster: the SLURM tests will skip"
   fi
 fi
-.venv/bin/python -m pytest "$@"
+# Two workers (pytest-xdist), whole files to a worker: the end-to-end file (one `dvc repro` fixture
+# and the tests that read it) runs on one while the rest of the suite runs on the other.
+# PARTY_TEST_WORKERS=0 runs in this process; `-n N` given here wins.
+.venv/bin/python -m pytest -n "${PARTY_TEST_WORKERS:-2}" --dist loadfile "$@"
