@@ -114,6 +114,21 @@ def test_cli_params_names_the_key(tmp_path):
     assert not (tmp_path / "params.yaml").exists()
 
 
+def test_cli_params_fails_before_touching_the_kept_choices(tmp_path, monkeypatch):
+    """A bad value never reaches conf/local/choices.yaml, not even for a moment: every other
+    composition of conf/ (another shell's, a test's, a stage's) reads that file."""
+    import party.config
+    from party.cli import cmd_params
+
+    def touched(*a, **k):
+        raise AssertionError("persist_choices called for a bad value")
+    monkeypatch.setattr(party.config, "persist_choices", touched)
+    (tmp_path / "conf").symlink_to(CONF)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"vqvae\.train\.max_steps"):
+        cmd_params(["vqvae.train.max_steps=abc"])
+
+
 # --------------------------------------------------------------------------- what validates
 
 def test_schema_covers_every_group_and_is_a_structured_config():

@@ -184,8 +184,8 @@ one), which every composition of conf/ reads, so `dvc exp run -S k=v` changes on
 def cmd_params(argv: list[str]) -> int:
     from hydra.errors import MissingConfigException
 
-    from party.config import (CHOICES, choices_as_overrides, params_stale, persist_choices, remove_choices,
-                              write_params)
+    from party.config import (CHOICES, choices_as_overrides, compose, params_stale, persist_choices,
+                              remove_choices, write_params)
     check, reset = "--check" in argv, "--reset" in argv
     overrides = [a for a in argv if a not in ("--check", "--reset")]
     try:
@@ -196,6 +196,8 @@ def cmd_params(argv: list[str]) -> int:
                 return 1
             print("params.yaml matches conf/" + _choices_note(choices_as_overrides()))
             return 0
+        if not reset:          # a bad value fails here, before conf/local/ changes (others compose it)
+            compose([o for o in overrides if not o.startswith("~")])
         path = Path("conf") / CHOICES
         before = path.read_bytes() if path.exists() else None
         persist_choices(overrides, reset=reset)
