@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from party.stages import cache_part_texts
 from text_helpers import REPO, openai_cfg, write_index
 
-N = 40
+N = 120                                  # 9 s of slow requests: the signal lands mid-run on a loaded machine
 CAPS = [[f"a person waves {i} times."] for i in range(N)]
 
 
