@@ -33,7 +33,10 @@ def test_interrupted_run_keeps_a_valid_cache_and_resumes(tmp_path, fake_llm, sig
     cfg = openai_cfg(tmp_path, llm, **{"part_texts.concurrency": 2, "part_texts.timeout_s": 5})
     cfg_path = tmp_path / "cfg.yaml"
     OmegaConf.save(cfg, cfg_path)
-    code = ("import sys; from omegaconf import OmegaConf; from party.stages import cache_part_texts;"
+    # Ctrl-C raises KeyboardInterrupt in the child even where this test runs with SIGINT ignored (a
+    # background job of a shell without job control: ignored dispositions are inherited)
+    code = ("import signal; signal.signal(signal.SIGINT, signal.default_int_handler);"
+            "import sys; from omegaconf import OmegaConf; from party.stages import cache_part_texts;"
             f"cache_part_texts.run(OmegaConf.load({str(cfg_path)!r}))")
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
