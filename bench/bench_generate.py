@@ -43,11 +43,15 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def timed(model: PartyGenerator, c: torch.Tensor, lengths: dict, use_cache: bool, seed: int) -> tuple[float, dict]:
+def timed(model: PartyGenerator, c: torch.Tensor, lengths: dict, mode: str, seed: int,
+          cond_scale: float) -> tuple[float, dict]:
     sync(c.device)
     t0 = time.perf_counter()
+    kw = {"use_cache": mode != "none"}
+    if mode != "none":
+        kw["decoder"] = mode
     out = model.generate(c, lengths=lengths, sampling="sample", generator=torch.Generator(c.device).manual_seed(seed),
-                         use_cache=use_cache)
+                         cond_scale=cond_scale, **kw)
     sync(c.device)
     return time.perf_counter() - t0, out
 
@@ -72,22 +76,32 @@ def build(name: str, gen_cfg, vocab: dict, windows: dict, text_dim: int):
     return PartyGenerator(spec)
 
 
-def run(model: PartyGenerator, batch: int, reps: int, use_cache: bool, frames: int, text_dim: int,
-        device: torch.device) -> tuple[float, list]:
+def run(model, batch: int, reps: int, mode: str, frames: int, text_dim: int, device: torch.device,
+        cond_scale: float) -> tuple[float, list]:
     """Total seconds for ``reps`` batches of ``batch`` samples (after one warm-up batch)."""
     lengths = {s: torch.full((batch,), frames // w, device=device) for s, w in windows_of(model).items()}
     g = torch.Generator().manual_seed(0)
     cs = [torch.randn(batch, text_dim, generator=g).to(device) for _ in range(reps + 1)]
-    timed(model, cs[0], lengths, use_cache, 0)
+    timed(model, cs[0], lengths, mode, 0, cond_scale)
     total, outs = 0.0, []
     for i, c in enumerate(cs[1:]):
-        dt, out = timed(model, c, lengths, use_cache, i + 1)
+        dt, out = timed(model, c, lengths, mode, i + 1, cond_scale)
         total += dt
         outs.append(out)
     for out in outs:                                 # forced lengths really generated the full length
         for s, rows in out.items():
             assert all(len(r) == int(lengths[s][0]) for r in rows), s
     return total, outs
+
+
+def same_tokens(a: list, b: list) -> tuple[int, int]:
+    """(samples whose tokens agree, samples) between two runs of the same seeds."""
+    n = same = 0
+    for x, y in zip(a, b):
+        for i in range(len(next(iter(x.values())))):
+            n += 1
+            same += all(x[s][i].tolist() == y[s][i].tolist() for s in x)
+    return same, n
 
 
 def linear_chain(model: PartyGenerator, stream: str) -> list[torch.nn.Linear]:
@@ -128,9 +142,14 @@ def main() -> None:
     ap.add_argument("--n1", type=int, default=20, help="samples timed at batch 1")
     ap.add_argument("--n32", type=int, default=3, help="batches of 32 timed")
     ap.add_argument("--methods", default="party,holistic,party_parts_only,humantomato")
-    ap.add_argument("--profile", default="paper", choices=["paper", "cpu"], help="conf/generator/<profile>.yaml")
-    ap.add_argument("--text-dim", type=int, default=512, help="CLIP ViT-B/32 text embedding width")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--profile", default="cpu", choices=["paper", "cpu"], help="conf/generator/<profile>.yaml")
+    ap.add_argument("--cond-scale", type=float, default=None,
+                    help="guidance scale of the methods trained with cond_drop > 0 (default: the profile's "
+                         "generate.cond_scale)")
+    ap.add_argument("--text-dim", type=int, default=384, help="text embedding width (384: the default's MiniLM; "
+                    "512: CLIP ViT-B/32)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds per mode")
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
@@ -140,41 +159,49 @@ def main() -> None:
         over = OmegaConf.load(REPO / "conf/generator/cpu.yaml")
         over.pop("defaults", None)
         gen_cfg = OmegaConf.merge(gen_cfg, over)
+    if a.cond_scale is None:
+        a.cond_scale = float(gen_cfg.generate.cond_scale)
     tok_cfg = OmegaConf.load(REPO / "conf/vqvae/paper.yaml").tokenizers
     vocab = {s: int(t.codebook_size) for s, t in tok_cfg.items()}
     windows = {s: int(t.window) for s, t in tok_cfg.items()}
     print(f"{a.frames} frames: " + ", ".join(f"{s} {a.frames // w} codes (w {w}, K {vocab[s]})"
                                             for s, w in windows.items())
           + f"; model {dict(gen_cfg.model)}; device {device}, {torch.get_num_threads()} thread(s)")
+    modes = {"stacked": "cache, StackedDecoder", "modules": "cache, module forward", "none": "no cache"}
     for name in a.methods.split(","):
         model = build(name, gen_cfg, vocab, windows, a.text_dim).to(device).eval()
         spec = model.spec
+        scale = a.cond_scale if getattr(spec, "cond_drop", 0) > 0 else 1.0
         counts = model.param_counts()
-        print(f"\n[{name}] params: " + ", ".join(f"{k} {v / 1e6:.3f}M" for k, v in counts.items() if v))
+        print(f"\n[{name}] guidance scale {scale:g}; params: "
+              + ", ".join(f"{k} {v / 1e6:.3f}M" for k, v in counts.items() if v))
         res = {}
         for batch, reps in ((1, a.n1), (32, a.n32)):
-            for use_cache in (True, False):
-                total, outs = run(model, batch, reps, use_cache, a.frames, a.text_dim, device)
-                res[batch, use_cache] = (total / (batch * reps), outs)
-        for batch in (1, 32):                          # like for like: same seeds, same tokens
-            for (x, y) in zip(res[batch, True][1], res[batch, False][1]):
-                assert all([r.tolist() for r in x[s]] == [r.tolist() for r in y[s]] for s in x), (name, batch)
-        print(f"{'':22s} {'ms/sample':>10s} {'samples/s':>10s}")
+            for _ in range(a.rounds):              # interleaved rounds: drift of a shared machine hits every mode
+                for mode in modes:
+                    total, outs = run(model, batch, reps, mode, a.frames, a.text_dim, device, scale)
+                    t, o = res.get((batch, mode), (0.0, []))
+                    res[batch, mode] = (t + total / (batch * reps * a.rounds), o or outs)
+        print(f"{'':36s} {'ms/sample':>10s} {'samples/s':>10s}")
         for batch in (1, 32):
-            for use_cache in (True, False):
-                per = res[batch, use_cache][0]
-                label = f"batch {batch:2d} {'cache' if use_cache else 'no cache':8s}"
-                print(f"{label:22s} {per * 1e3:10.2f} {1 / per:10.1f}")
-        b1c, b1n, b32c = res[1, True][0], res[1, False][0], res[32, True][0]
-        b32n = res[32, False][0]
-        print(f"KV cache vs recomputation: {b1n / b1c:.1f}x at batch 1, {b32n / b32c:.1f}x at batch 32")
-        print(f"batch 32 vs batch 1 per-sample throughput: {b1c / b32c:.1f}x with the cache, "
-              f"{b1n / b32n:.1f}x without")
+            for mode, label in modes.items():
+                per = res[batch, mode][0]
+                print(f"{f'batch {batch:2d} {label}':36s} {per * 1e3:10.2f} {1 / per:10.1f}")
+        for batch in (1, 32):
+            st, mo, no = (res[batch, m][0] for m in modes)
+            agree = ", ".join(f"{m} {'%d/%d' % same_tokens(res[batch, m][1], res[batch, 'none'][1])}"
+                              for m in ("stacked", "modules"))
+            print(f"batch {batch}: StackedDecoder vs module forward {mo / st:.2f}x; cache vs recomputation "
+                  f"{no / st:.2f}x (stacked), {no / mo:.2f}x (modules); samples with the recomputed tokens: {agree}")
+        print(f"batch 32 vs batch 1 per-sample throughput: {res[1, 'stacked'][0] / res[32, 'stacked'][0]:.1f}x "
+              f"(stacked), {res[1, 'none'][0] / res[32, 'none'][0]:.1f}x (no cache)")
         if not isinstance(model, PartyGenerator):
             continue
         positions = {s: a.frames // w + 1 for s, w in spec.windows.items() if s in spec.streams}
+        b1 = res[1, "none"][0]
         print(f"matmul ceiling of the cache at batch 1 ({', '.join(f'{s} {n}' for s, n in positions.items())} "
-              f"positions): {ceiling(model, positions, device):.1f}x (measured above: {b1n / b1c:.1f}x)")
+              f"positions): {ceiling(model, positions, device):.1f}x (measured: {b1 / res[1, 'stacked'][0]:.1f}x "
+              f"stacked, {b1 / res[1, 'modules'][0]:.1f}x modules)")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """HumanTOMATO's Hierarchical-GPT (party.methods.humantomato.hgpt) and its alignment loss
 (SPEC-humantomato §8 items 6, 7, 9, 10): the sequence layout and its 149 positions, slot-typed
 heads with END only where a row starts, KV-cached generation equal to recomputation, relaxed codes
-decoding as the tokenizer decodes, eta = 0 bit-identical to cross-entropy alone, and with eta > 0
+decoding as the tokenizer decodes, the StackedDecoder giving the module path's tokens, eta = 0 bit-identical to cross-entropy alone, and with eta > 0
 gradients that reach the GPT and never the frozen tokenizer or TMA."""
 import hashlib
 
@@ -96,8 +96,9 @@ def test_cached_generation_equals_recomputed(order, guidance, cond_drop, scale):
     kw = dict(sampling="sample", temperature=1.0, cond_scale=scale)
     a = m.generate(text, generator=torch.Generator().manual_seed(3), use_cache=True, **kw)["holistic"]
     b = m.generate(text, generator=torch.Generator().manual_seed(3), use_cache=False, **kw)["holistic"]
-    assert [x.shape for x in a] == [y.shape for y in b]
-    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    c = m.generate(text, generator=torch.Generator().manual_seed(3), use_cache=True, decoder="modules", **kw)["holistic"]
+    assert [x.shape for x in a] == [y.shape for y in b] == [y.shape for y in c]
+    assert all(torch.equal(x, y) and torch.equal(x, z) for x, y, z in zip(a, b, c))
     assert all(x.shape[1] == 3 and 0 <= x.min() and x.max() < K for x in a if len(x))
 
 

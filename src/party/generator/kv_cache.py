@@ -21,6 +21,8 @@ class KVCache(nn.Module):
         self.register_buffer("v", torch.empty(shape, dtype=dtype, device=device), persistent=False)
         self.max_len = max_len
         self.fill = [0] * layers
+        # per-layer views, made once: indexing the 5-d buffers at every step costs more than the copy
+        self._k, self._v = [self.k[i] for i in range(layers)], [self.v[i] for i in range(layers)]
 
     def reset(self) -> None:
         self.fill = [0] * len(self.fill)
@@ -33,14 +35,15 @@ class KVCache(nn.Module):
     def get(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
         """All keys and values of ``layer`` so far (views into the buffers)."""
         n = self.fill[layer]
-        return self.k[layer, :, :, :n], self.v[layer, :, :, :n]
+        return self._k[layer].narrow(2, 0, n), self._v[layer].narrow(2, 0, n)
 
     def update(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Append ``k, v`` (B, heads, t, head_dim) to ``layer``; return all its keys and values so far."""
         start, t = self.fill[layer], k.shape[2]
         if start + t > self.max_len:
             raise ValueError(f"KV cache full: {start} + {t} > {self.max_len} positions")
-        self.k[layer, :, :, start:start + t] = k
-        self.v[layer, :, :, start:start + t] = v
+        kl, vl = self._k[layer], self._v[layer]
+        kl.narrow(2, start, t).copy_(k)
+        vl.narrow(2, start, t).copy_(v)
         self.fill[layer] = start + t
-        return self.k[layer, :, :, :start + t], self.v[layer, :, :, :start + t]
+        return kl.narrow(2, 0, start + t), vl.narrow(2, 0, start + t)

@@ -5,11 +5,30 @@ attend) or an incremental chunk continuing a ``KVCache`` (positions ``start..sta
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from party.generator.kv_cache import KVCache
+
+
+@contextmanager
+def evaluating(module: nn.Module) -> Iterator[None]:
+    """Eval mode (no dropout) inside, ``module.train(was)`` after; no walk of the module tree when
+    every submodule is in eval mode already (``train()`` visits each module in Python: ~2.5 ms for
+    ParTY's 370, a sizeable share of one batch-1 sample)."""
+    was = module.training
+    changed = was or any(m.training for m in module.modules())
+    if changed:
+        module.eval()
+    try:
+        yield
+    finally:
+        if changed:
+            module.train(was)
 
 
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None,

@@ -37,8 +37,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from party.generator.decode import StackedDecoder, check_decoder
 from party.generator.kv_cache import KVCache
-from party.generator.layers import TEXT_NORMS, TextNorm, Transformer
+from party.generator.layers import TEXT_NORMS, TextNorm, Transformer, evaluating
 from party.generator.sampling import choose
 
 #: the ``generator.model`` keys a Hierarchical-GPT reads (the rest of its spec is the method's entry)
@@ -245,24 +246,23 @@ class HierarchicalGPT(TextNorm, nn.Module):
                  sampling: str = "sample", temperature: float = 1.0, top_k: int | None = None,
                  top_p: float | None = None, generator: torch.Generator | None = None,
                  use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None,
-                 part_cond_scale: float | None = None) -> dict[str, list[torch.Tensor]]:
+                 part_cond_scale: float | None = None, decoder: str = "stacked") -> dict[str, list[torch.Tensor]]:
         """Rows (n_b, Q) per sample in the store's order ((n_b,) codes over a one-level store).
         ``lengths`` {stream: (B,)} target row counts (END suppressed before, forced at); without, END is sampled (not before ``min_frames``), at
         the latest after ``max_rows`` rows. ``cond_scale`` applies with ``guidance: true`` only.
-        ``use_cache=False`` recomputes the whole prefix every step (the reference the cache must equal)."""
+        ``use_cache=False`` recomputes the whole prefix every step (the reference the cache must equal).
+        With the cache, ``decoder`` ``stacked`` steps through ``party.generator.decode.StackedDecoder``,
+        ``modules`` through the transformer's own ``forward`` (the same tokens up to float rounding)."""
         scale = float(cond_scale) if self.spec.guidance else 1.0
         if scale != 1.0 and self.spec.cond_drop <= 0:
             raise ValueError(f"guidance scale {scale} needs a model trained with generator.model.cond_drop > 0")
-        was = self.training
-        self.eval()
-        try:
+        with evaluating(self):
             with torch.inference_mode():
                 return self._generate(text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
-                                      use_cache, scale, min_frames)
-        finally:
-            self.train(was)
+                                      use_cache, scale, min_frames, check_decoder(decoder))
 
-    def _generate(self, text_emb, lengths, sampler, use_cache: bool, scale: float, min_frames) -> dict:
+    def _generate(self, text_emb, lengths, sampler, use_cache: bool, scale: float, min_frames,
+                  decoder: str = "stacked") -> dict:
         spec = self.spec
         B, Q, M, dev = text_emb.shape[0], spec.slots, spec.max_rows, text_emb.device
         c = self.norm_text(text_emb)
@@ -275,13 +275,17 @@ class HierarchicalGPT(TextNorm, nn.Module):
             if int(target.min()) < 1 or int(target.max()) > M:
                 raise ValueError(f"target row counts must lie in [1, {M}]")
         min_rows = 0 if min_frames is None else min(-(-int(min_frames) // spec.window), M)
-        cache = self.new_cache(c.shape[0], c.dtype, dev) if use_cache else None
+        cache = self.new_cache(c.shape[0], c.dtype, dev) if use_cache and decoder == "modules" else None
+        dec = StackedDecoder([self.net], c.shape[0], c.dtype, dev) if use_cache and decoder == "stacked" else None
         x_all = self.text(c)[:, None]
         x = x_all
         out = torch.full((B, M * Q + 1), self.pad, dtype=torch.long, device=dev)
         done = torch.zeros(B, dtype=torch.bool, device=dev)
         for p in range(M * Q + 1):
-            h = self.net(x, p, cache=cache)[:, -1:] if use_cache else self.net(x_all)[:, -1:]
+            if dec is not None:
+                h = dec.step(x[None, :, 0])[0][:, None]
+            else:
+                h = self.net(x, p, cache=cache)[:, -1:] if use_cache else self.net(x_all)[:, -1:]
             logits = self.logits(h, p)[:, 0]
             if guided:                                  # u + s (l - u), the masked END kept -inf
                 lc, lu = logits[:B], logits[B:]

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from party.generator.kv_cache import KVCache
-from party.generator.layers import TEXT_NORMS, TextNorm, attention
+from party.generator.layers import TEXT_NORMS, TextNorm, attention, evaluating
 from party.generator.sampling import choose
 
 #: the ``generator.model`` keys a ParCo-like model reads (the rest of its spec is the method's entry)
@@ -308,14 +308,10 @@ class ParcoGenerator(TextNorm, nn.Module):
         if s != 1.0 and self.spec.cond_drop <= 0:
             raise ValueError(f"guidance scale {s} needs a model trained with generator.model.cond_drop > 0 "
                              "(this one never saw the null condition); set generator.generate.cond_scale=1")
-        was = self.training
-        self.eval()
-        try:
+        with evaluating(self):
             with torch.inference_mode():
                 return self._generate(text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
                                       use_cache, s, min_frames)
-        finally:
-            self.train(was)
 
     def _generate(self, text_emb, lengths, sampler, use_cache: bool, scale: float, min_frames) -> dict:
         spec = self.spec

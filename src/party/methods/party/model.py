@@ -46,7 +46,8 @@ from party.methods.party import schedule as S
 from party.methods.party.config import PartyConfig
 from party.schema import GenLoss, GenModel
 from party.methods.party.hpf import HolisticPartFusion
-from party.generator.layers import TEXT_NORMS, TextNorm, Transformer
+from party.generator.layers import TEXT_NORMS, TextNorm, Transformer, evaluating
+from party.generator.decode import StackedDecoder, check_decoder
 from party.methods.party.ptg import PartTextGrounding, diversity_loss
 from party.generator.sampling import choose
 
@@ -351,13 +352,9 @@ class PartyGenerator(TextNorm, nn.Module):
         [holistic; SPLIT; arms; SPLIT; legs], part: (B, heads, L_h + 1, L_p + 1) cross-attention}."""
         if self.hpf is None:
             raise ValueError("this method has no HPF")
-        was = self.training
-        self.eval()
-        try:
+        with evaluating(self):
             with torch.no_grad():
                 return self._teacher_forcing(batch, need_weights=True)["maps"]
-        finally:
-            self.train(was)
 
     def param_counts(self) -> dict[str, int]:
         """Parameters per module (0 for modules the method lacks) and the total."""
@@ -372,11 +369,14 @@ class PartyGenerator(TextNorm, nn.Module):
                  sampling: str = "greedy", temperature: float = 1.0, top_k: int | None = None,
                  top_p: float | None = None, generator: torch.Generator | None = None,
                  use_cache: bool = True, cond_scale: float = 1.0, min_frames: int | None = None,
-                 part_cond_scale: float | None = None) -> dict[str, list[torch.Tensor]]:
+                 part_cond_scale: float | None = None, decoder: str = "stacked") -> dict[str, list[torch.Tensor]]:
         """Codes per stream and sample (END excluded). ``lengths`` {stream: (B,)} target code counts
         (END suppressed before, forced at); every stream ends by ``max_tokens`` codes. Without a
         target, ``min_frames`` suppresses END before ceil(min_frames / window) codes. Runs in eval
         mode (restored after). ``use_cache=False`` recomputes the full prefix at every step.
+        With the cache, ``decoder`` ``stacked`` steps the transformers through
+        ``party.generator.decode.StackedDecoder`` (the part streams in one forward), ``modules``
+        through their own ``forward`` (the reference; the same tokens up to float rounding).
         ``cond_scale`` s != 1: classifier-free guidance, every stream's logits u + s (l - u) from the
         text's logits l and the null condition's u (a model trained with ``cond_drop`` > 0);
         ``part_cond_scale`` (None: ``cond_scale``) is the scale of the Arms / Legs streams alone."""
@@ -386,21 +386,17 @@ class PartyGenerator(TextNorm, nn.Module):
             raise ValueError(f"guidance scales {scales} need a model trained with generator.model.cond_drop > 0 "
                              "(this one never saw the null condition); set generator.generate.cond_scale=1 "
                              "and generator.generate.part_cond_scale=null")
-        was = self.training
-        self.eval()
-        try:
+        with evaluating(self):
             with torch.inference_mode():
                 return _Generation(self, text_emb, lengths, (sampling, temperature, top_k, top_p, generator),
-                                   use_cache, scales, min_frames).run()
-        finally:
-            self.train(was)
+                                   use_cache, scales, min_frames, check_decoder(decoder)).run()
 
 
 class _Generation:
     """One batched generation: part-then-holistic cycles (party), or one kind's streams."""
 
     def __init__(self, model: PartyGenerator, c: torch.Tensor, lengths, sampler, use_cache: bool,
-                 scales: Mapping[str, float], min_frames: int | None = None):
+                 scales: Mapping[str, float], min_frames: int | None = None, decoder: str = "stacked"):
         c = model.norm_text(c)
         self.B, self.scales = c.shape[0], scales
         self.keep = None
@@ -429,7 +425,14 @@ class _Generation:
             self.cond.update(c_parts)
         if spec.kind != "partwise":
             self.cond[model.hol] = c
-        self.cache = {s: model.gpt[s].body.new_cache(self.N, c.dtype, dev) for s in self.streams} if use_cache else {}
+        self.cache, self.dec = {}, {}
+        if use_cache and decoder == "modules":
+            self.cache = {s: model.gpt[s].body.new_cache(self.N, c.dtype, dev) for s in self.streams}
+        elif use_cache:               # one decoder for the part streams (one shape), one for the holistic
+            groups = [[s] for s in self.streams if s == model.hol] + [[p for p in self.streams if p != model.hol]]
+            for group in filter(None, groups):
+                dec = StackedDecoder([model.gpt[s].body for s in group], self.N, c.dtype, dev)
+                self.dec.update({s: (dec, i) for i, s in enumerate(group)})
         self.hpf_cache = model.hpf.start(self.N, c.dtype, dev) if use_cache and model.hpf is not None else None
         self.guidance = None
 
@@ -465,16 +468,27 @@ class _Generation:
         g, k = self.m.gpt[s], self.tok[s].shape[1]
         return g.cond(self.cond[s])[:, None] if k == 0 else g.tok(self._rows(self.tok[s][:, -1:]))
 
-    def part_step(self, p: str) -> None:
-        g, k = self.m.gpt[p], self.tok[p].shape[1]
-        if bool(self.done[p].all()):            # nothing left to generate: keep the lock-step with PAD
-            self.tok[p] = torch.cat([self.tok[p], torch.full_like(self.tok[p][:, :1], g.pad)], 1)
-            return
-        if self.use_cache:
-            logits = g(self._last_input(p), start=k, cache=self.cache[p])[:, -1]
-        else:
-            logits = g(g.inputs(self.cond[p], self._rows(self.tok[p])))[:, -1]
-        self._pick(p, logits, k)
+    def _decode(self, streams: list[str]) -> dict[str, torch.Tensor]:
+        """Next-token logits (N, K + 1) of ``streams`` (one ``StackedDecoder``) at their next position."""
+        dec = self.dec[streams[0]][0]
+        h = dec.step(torch.stack([self._last_input(s)[:, 0] for s in streams]))
+        return {s: self.m.gpt[s].head(h[i]) for i, s in enumerate(streams)}
+
+    def parts_step(self) -> None:
+        """One token of every part stream (lock-step; a finished stream gets PAD)."""
+        parts = self.m.parts
+        live = [p for p in parts if not bool(self.done[p].all())]
+        logits = self._decode(parts) if live and self.dec else {}
+        for p in parts:
+            g, k = self.m.gpt[p], self.tok[p].shape[1]
+            if p not in live:                   # nothing left to generate: keep the lock-step with PAD
+                self.tok[p] = torch.cat([self.tok[p], torch.full_like(self.tok[p][:, :1], g.pad)], 1)
+            elif self.dec:
+                self._pick(p, logits[p], k)
+            elif self.use_cache:
+                self._pick(p, g(self._last_input(p), start=k, cache=self.cache[p])[:, -1], k)
+            else:
+                self._pick(p, g(g.inputs(self.cond[p], self._rows(self.tok[p])))[:, -1], k)
 
     def holistic_step(self) -> None:
         m, h = self.m, self.m.hol
@@ -486,7 +500,10 @@ class _Generation:
                 x = x + m.hpf.step(self.hpf_cache, x, j, S.holistic_times(self.N, 1, T, w_h, w_p, j, x.device, la))
             if self.guidance is not None:
                 x = x + self.guidance
-            logits = g(x, start=j, cache=self.cache[h])[:, -1]
+            if self.dec:
+                logits = g.head(self.dec[h][0].step(x[None, :, 0])[0])
+            else:
+                logits = g(x, start=j, cache=self.cache[h])[:, -1]
         else:
             parts = self._part_rows({p: self.tok[p] for p in m.parts}) if m.spec.kind == "party" else None
             logits = m._holistic_logits(self.c, self._rows(self.tok[h]), parts)[0][:, -1]
@@ -511,16 +528,14 @@ class _Generation:
                 self.holistic_step()
         elif kind == "partwise":
             while not all(bool(self.done[p].all()) for p in m.parts):
-                for p in m.parts:
-                    self.part_step(p)
+                self.parts_step()
         else:
             T, w_h, w_p, la = m._sched()
             i, h = 0, m.hol
             while not bool(self.done[h].all()):
                 k0 = self.tok[m.parts[0]].shape[1]
                 for _ in range(k0, min(S.parts_generated(i, T, w_h, w_p, la), self.M + 1)):
-                    for p in m.parts:
-                        self.part_step(p)
+                    self.parts_step()
                 self._cycle_parts(i, k0)
                 for _ in range(T):
                     if bool(self.done[h].all()):
