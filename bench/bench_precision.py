@@ -1,6 +1,6 @@
 """Training steps in bf16-mixed vs fp32 on this CPU, same run (what ``precision: auto`` buys).
 
-    python bench/bench_precision.py [--steps 5] [--rounds 6] [--threads 1] [key=value ...]
+    python bench/bench_precision.py [--steps 5] [--rounds 6] [--threads 1] [--profile N] [key=value ...]
 
 Reads params.yaml (+ overrides) like a stage and needs the prepared data, tokens and
 embeddings of the default pipeline. Two models, each with its real training step (forward,
@@ -9,7 +9,9 @@ ParTY generator (``generator.*``, method ``party``). The fp32 and bf16 arms (``t
 on the CPU, as Lightning's ``bf16-mixed``) alternate in blocks of ``--steps`` steps, order
 flipped every round, so load from other processes hits both alike. Prints ms per step of each
 arm and the ratio, and whether this CPU computes bf16 natively (AVX512-BF16 / AMX): without
-it ``precision: auto`` stays fp32, and this ratio is typically below 1.
+it ``precision: auto`` stays fp32, and this ratio is typically below 1. ``--profile N`` then
+prints torch.profiler's N most expensive operators of each arm (docs/performance.md). Run under
+``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2`` to time the fp32 arm as an AVX2-only CPU would.
 """
 from __future__ import annotations
 
@@ -52,7 +54,7 @@ def generator_step(cfg):
     return model, (lambda b: model.losses(b)["loss"]), batches
 
 
-def measure(name, build, cfg, steps: int, rounds: int) -> None:
+def measure(name, build, cfg, steps: int, rounds: int, profile: int = 0) -> None:
     torch.manual_seed(0)
     model, loss_of, batches = build(cfg)
     model.train()
@@ -79,6 +81,16 @@ def measure(name, build, cfg, steps: int, rounds: int) -> None:
     med = statistics.median(f / b for f, b in zip(res[False], res[True]))
     print(f"{name:9s}: fp32 {fp:7.1f} ms/step   bf16-mixed {bf:7.1f} ms/step   "
           f"speed-up {fp / bf:.2f}x (median per round {med:.2f}x)", flush=True)
+    if profile:
+        from torch.profiler import profile as torch_profile
+        for bf16 in (False, True):
+            with torch_profile(record_shapes=True) as prof:
+                for k in range(steps):
+                    step(batches[k % len(batches)], bf16)
+            print(f"\n{name}, {'bf16-mixed' if bf16 else 'fp32'}, {steps} steps: operators by own CPU time")
+            print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=profile))
+            print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total",
+                                                                     row_limit=profile), flush=True)
 
 
 def main(argv=None) -> int:
@@ -87,6 +99,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=6, help="blocks per arm, alternating arms")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (a pipeline lane has 1)")
     ap.add_argument("--only", choices=("tokenizer", "generator"), default=None)
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="after the timing, torch.profiler's N most expensive operators of each arm "
+                         "(--steps steps), also by input shape")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value (applied to params.yaml)")
     a = ap.parse_args(argv)
 
@@ -102,7 +117,7 @@ def main(argv=None) -> int:
           f"(precision: auto -> {'bf16-mixed' if cpu_has_native_bf16() else '32-true'})")
     for name, build in (("tokenizer", tokenizer_step), ("generator", generator_step)):
         if a.only in (None, name):
-            measure(name, build, cfg, a.steps, a.rounds)
+            measure(name, build, cfg, a.steps, a.rounds, a.profile)
     return 0
 
 

@@ -37,8 +37,24 @@ def test_precision_auto_is_bf16_only_where_the_cpu_has_it(monkeypatch):
         assert trainer_kwargs(cfg, {"precision": None})["precision"] == want          # null: inherit
         assert trainer_kwargs(cfg, {"precision": "32-true"})["precision"] == "32-true"  # a value wins
     monkeypatch.undo()
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
-    assert T.cpu_has_native_bf16() == any(f in flags.split() for f in ("avx512_bf16", "amx_bf16"))
+    native = torch.backends.cpu.get_cpu_capability().startswith("AVX512") and \
+        any(f in flags.split() for f in ("avx512_bf16", "amx_bf16"))
+    assert T.cpu_has_native_bf16() == native
+    for isa, keeps in (("AVX2", False), ("avx512_core", False), ("AVX512_CORE_BF16", True), ("ALL", True)):
+        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)          # oneDNN capped below its bf16 instructions
+        assert T.cpu_has_native_bf16() == (keeps and native), isa
+
+
+def test_precision_auto_is_fp32_when_timed_as_an_avx2_only_cpu():
+    """docs/performance.md: the two variables alone make a stage run as an AVX2-only CPU runs it,
+    fp32 included (bf16 under the capped ISA is ~14x slower than fp32, not the user's case)."""
+    env = {**os.environ, "ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
+    out = subprocess.run([sys.executable, "-c", "import torch; from party.training import resolve_precision as r; "
+                          "print(torch.backends.cpu.get_cpu_capability(), r('auto', 'cpu'))"],
+                         env=env, capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["AVX2", "32-true"], out
 
 
 def test_config_key_and_resume_checkpoint(tmp_path):

@@ -96,10 +96,24 @@ def resolve_device(name: str | None) -> torch.device:
 
 # --------------------------------------------------------------------------- trainer
 
+#: oneDNN ISA caps (``ONEDNN_MAX_CPU_ISA``) that keep its bf16 instructions (AVX512-BF16, AMX, AVX10)
+_ONEDNN_BF16_ISAS = ("ALL", "AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "AVX512_CORE_AMX_FP16",
+                     "AVX10_1_512", "AVX10_1_512_AMX", "AVX10_1_512_AMX_FP16", "AVX10_2_512", "AVX10_2_512_AMX_2")
+
+
 def cpu_has_native_bf16() -> bool:
-    """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX-BF16 in /proc/cpuinfo's
-    flags; False where that file does not exist). Without them oneDNN emulates bf16, no
-    faster than fp32 (AVX-512 without BF16) or much slower (AVX2 only)."""
+    """Whether bf16 runs natively here: this CPU has AVX512-BF16 or AMX-BF16 (/proc/cpuinfo's
+    flags; False where that file does not exist) and the kernels may use them: ATen's CPU
+    capability is AVX-512 (``ATEN_CPU_CAPABILITY`` may cap it) and ``ONEDNN_MAX_CPU_ISA``, if set,
+    allows oneDNN's bf16 instructions. Without them oneDNN emulates bf16, no faster than fp32
+    (AVX-512 without BF16) or far slower: a tokenizer training step under
+    ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2`` (how docs/performance.md times a stage as
+    an AVX2-only CPU) takes 5.3 s in bf16-mixed against 0.39 s in fp32."""
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    if isa and isa not in _ONEDNN_BF16_ISAS:
+        return False
+    if not torch.backends.cpu.get_cpu_capability().upper().startswith("AVX512"):
+        return False
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
