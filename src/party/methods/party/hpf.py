@@ -130,10 +130,11 @@ class HolisticPartFusion(nn.Module):
     def step(self, cache: HPFCache, h: torch.Tensor, j: int, h_time: torch.Tensor) -> torch.Tensor:
         """Fusion output (B, t, dim) for holistic elements ``j..j+t-1`` (``h`` (B, t, dim), times (B, t))."""
         y = self._self_step(cache, h + self.pos_h.weight[j:j + h.shape[1]], h_time)
-        q = split_heads(self.q(self.ln_q(y)), self.heads)
-        fused = 0
-        for i, _ in enumerate(self.parts):
-            k, v = cache.cross_kv.get(i)
-            mask = (cache.cross_time[i, :, None, :k.shape[2]] <= h_time[:, :, None])[:, None]
-            fused = fused + attention(q, k, v, mask, self._p())[0]
-        return self.drop(self.out(merge_heads(fused)))
+        q = split_heads(self.q(self.ln_q(y)), self.heads)                 # (B, heads, t, head_dim)
+        # every part's cross-attention in one call: the parts hold the same number of elements
+        # (``add_parts`` appends to all), so their keys stack on the batch axis as views
+        P, n = len(self.parts), cache.cross_kv.length
+        k, v = (buf.narrow(3, 0, n).flatten(0, 1) for buf in (cache.cross_kv.k, cache.cross_kv.v))
+        mask = cache.cross_time[:, :, None, :n] <= h_time[None, :, :, None]          # (P, B, t, n)
+        o = attention(q.expand(P, *q.shape).flatten(0, 1), k, v, mask.flatten(0, 1)[:, None], self._p())[0]
+        return self.drop(self.out(merge_heads(o.view(P, *q.shape).sum(0))))

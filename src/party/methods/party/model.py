@@ -434,6 +434,9 @@ class _Generation:
                 dec = StackedDecoder([model.gpt[s].body for s in group], self.N, c.dtype, dev)
                 self.dec.update({s: (dec, i) for i, s in enumerate(group)})
         self.hpf_cache = model.hpf.start(self.N, c.dtype, dev) if use_cache and model.hpf is not None else None
+        if self.hpf_cache is not None:                 # the step index of every holistic position, once
+            T, w_h, w_p, la = model._sched()
+            self.h_times = S.holistic_times(self.N, self.M + 1, T, w_h, w_p, 0, dev, la)
         self.guidance = None
 
     def _rows(self, t: torch.Tensor) -> torch.Tensor:
@@ -449,18 +452,20 @@ class _Generation:
         if self.N != self.B:                     # classifier-free guidance: u + s (l - u)
             cond, null = logits[:self.B], logits[self.B:]
             logits = null + self.scales[s] * (cond - null)
-        force = torch.full((self.B,), k >= self.M, dtype=torch.bool, device=logits.device)
-        t = self.target[s]
-        if t is not None:
+        force, t = None, self.target[s]
+        if t is not None:                        # END suppressed before the target, forced at it
             logits = logits.clone()
-            logits[:, g.end] = torch.where(k < t, float("-inf"), logits[:, g.end])
-            force = force | (k >= t)
+            logits[:, g.end].masked_fill_(k < t, float("-inf"))
+            force = k >= t
         elif k < self.min_codes[s]:
             logits = logits.clone()
             logits[:, g.end] = float("-inf")
         nxt = choose(logits, *self.sampler)
-        nxt = torch.where(force, g.end, nxt)
-        nxt = torch.where(self.done[s], g.pad, nxt)
+        if k >= self.M:                          # every stream ends by max_tokens codes
+            nxt = torch.full_like(nxt, g.end)
+        elif force is not None:
+            nxt = torch.where(force, g.end, nxt)
+        nxt = nxt.masked_fill(self.done[s], g.pad)
         self.done[s] = self.done[s] | (nxt == g.end)
         self.tok[s] = torch.cat([self.tok[s], nxt[:, None]], 1)
 
@@ -496,8 +501,7 @@ class _Generation:
         if self.use_cache:
             x = self._last_input(h)
             if m.hpf is not None:
-                T, w_h, w_p, la = m._sched()
-                x = x + m.hpf.step(self.hpf_cache, x, j, S.holistic_times(self.N, 1, T, w_h, w_p, j, x.device, la))
+                x = x + m.hpf.step(self.hpf_cache, x, j, self.h_times[:, j:j + 1])
             if self.guidance is not None:
                 x = x + self.guidance
             if self.dec:
