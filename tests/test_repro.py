@@ -25,6 +25,8 @@ FAKE = textwrap.dedent("""\
     with open(os.environ["FAKE_TRACE"], "a") as f:
         f.write(json.dumps([stage, "start", time.time(), os.environ.get("OMP_NUM_THREADS")]) + "\\n")
     time.sleep(spec.get("sleep", {}).get(stage, 0.3))
+    if stage in spec.get("noted", {}):       # what party.training.note_stage writes
+        json.dump(spec["noted"][stage], open(os.environ["PARTY_STAGE_INFO"], "w"))
     if stage in spec.get("unchanged", []):
         print(f"Stage '{stage}' didn't change, skipping")
     else:
@@ -70,6 +72,24 @@ def test_independent_stages_overlap_and_wait_for_their_inputs(fake, tmp_path):
     assert (tmp_path / "logs" / "b.log").read_text().startswith("Running stage 'b'")
     saved = json.loads((tmp_path / "logs" / "summary.json").read_text())
     assert saved["stages"]["b"]["seconds"] >= 1.0 and saved["jobs"] == 2
+
+
+def test_the_summary_says_what_each_stage_ran_with(fake, tmp_path, monkeypatch):
+    noted = {"b": {"precision": ["32-true"]}, "c": {"precision": ["bf16-mixed", "32-true"]}}
+    summary, _, events = fake({"noted": noted}, jobs=2)
+    threads = {e[0]: int(e[3]) for e in events if e[1] == "start"}
+    st = summary["stages"]
+    assert {s: r["threads"] for s, r in st.items()} == threads
+    assert st["b"]["precision"] == "32-true" and st["c"]["precision"] == ["bf16-mixed", "32-true"]
+    assert "precision" not in st["a"] and not list((tmp_path / "logs").glob("*.info.json"))   # read, then removed
+    from party.training import STAGE_INFO_ENV, note_stage
+    f = tmp_path / "noted.json"
+    note_stage(precision="32-true")                          # outside party repro: nothing
+    assert not f.exists()
+    monkeypatch.setenv(STAGE_INFO_ENV, str(f))
+    for p in ("bf16-mixed", "32-true", "bf16-mixed"):
+        note_stage(precision=p)
+    assert json.loads(f.read_text()) == {"precision": ["bf16-mixed", "32-true"]}
 
 
 def test_never_more_than_jobs_at_once(fake):

@@ -22,8 +22,9 @@ MACHINE = {"cpu_model": "Test CPU Model 9000", "cores": 7, "platform": "Linux-te
            "precision": {"trainer": "32-true", "vqvae": "bf16-mixed", "evaluator": "32-true",
                          "generator": "bf16-mixed", "text": "bf16-mixed"},
            "commit": SHA, "dirty": False, "changed": []}
-STAGES = {"prepare": {"status": "ran", "seconds": 12.5}, "train_vqvae@arms": {"status": "ran", "seconds": 321.9},
-          "evaluate": {"status": "ran", "seconds": 45.0}}
+STAGES = {"prepare": {"status": "ran", "seconds": 12.5, "threads": 2},
+          "train_vqvae@arms": {"status": "ran", "seconds": 321.9, "threads": 1, "precision": "32-true"},
+          "evaluate": {"status": "ran", "seconds": 45.0, "threads": 2, "precision": ["bf16-mixed", "32-true"]}}
 
 
 def st(mean, ci):
@@ -90,8 +91,9 @@ def test_the_page_holds_tables_times_machine_and_claims_that_follow_the_numbers(
     rows = page.splitlines()
     assert any(r.startswith("| alpha |") and "10.000±.500" in r for r in rows)          # Table 1, with its CI
     assert any(r.startswith("| beta | Legs |") and "20.000±.500" in r for r in rows)    # Table 2
-    assert "| train_vqvae@arms | ran | 321.9 |" in page                   # stage times
-    assert "| **sum of the stages** | | 379.4 | 100% |" in page
+    assert "| train_vqvae@arms | ran | 1 | 32-true | 321.9 |" in page       # stage times, threads, precision
+    assert "| prepare | ran | 2 | - | 12.5 |" in page and "| 2 | bf16-mixed, 32-true | 45.0 |" in page
+    assert "| **sum of the stages** | | | | 379.4 | 100% |" in page
     assert "Total wall time: 300.0 s (5.0 min), with `party repro -j 2`" in page
     assert "The longest stage is train_vqvae@arms" in page
     assert "Test CPU Model 9000, 7 cores" in page and "CPU capability AVX512" in page
@@ -130,7 +132,7 @@ def test_check_fails_on_a_page_edited_by_hand(tmp_path, capsys):
 def test_a_summary_without_machine_and_a_run_without_summary(tmp_path):
     page = page_of(project(tmp_path, evaluation(), {"jobs": 2, "seconds": 10.0, "stages": STAGES}, grid=False))
     assert "Machine not recorded" in page and "Commit: not recorded" in page
-    assert "| prepare | ran | 12.5 |" in page and "No sweep ran" in page
+    assert "| prepare | ran | 2 | - | 12.5 |" in page and "No sweep ran" in page
     (tmp_path / "logs" / "repro" / "summary.json").unlink()
     page = page_of(tmp_path)
     assert "Stage times" in page and "Not recorded: no `logs/repro/summary.json`" in page

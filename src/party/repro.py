@@ -207,6 +207,22 @@ def child_env(jobs: int, side_by_side: int) -> dict[str, str]:
     return env
 
 
+def _stage_info(log_dir: Path, stage: str, threads: int | None) -> dict:
+    """What a finished stage ran with: ``threads`` (its ``OMP_NUM_THREADS``) and what it noted
+    (``party.training.note_stage``: ``precision``, one value or a list), for its summary entry."""
+    out: dict = {"threads": threads} if threads else {}
+    f = log_dir / f"{stage}.info.json"
+    try:
+        noted = json.loads(f.read_text())
+        f.unlink()
+    except (OSError, ValueError):
+        return out
+    for k, vals in (noted.items() if isinstance(noted, dict) else ()):
+        if isinstance(vals, list) and vals:
+            out[k] = vals[0] if len(vals) == 1 else vals
+    return out
+
+
 def _tail(path: Path, n: int = 30) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").replace("\r", "\n").splitlines()[-n:])
@@ -228,8 +244,10 @@ def _wait_group(pgid: int, timeout_s: float = 120.0) -> None:
 def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: str = "dvc",
         log_dir: Path = LOG_DIR, extra: list[str] | None = None) -> dict:
     """Run every stage of ``graph`` (stage -> deps) through DVC, at most ``jobs`` at a time.
-    Returns {"stages": {stage: {"status", "seconds"}}, "seconds": wall}; status is ran, unchanged,
-    done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped after a failure)."""
+    Returns {"stages": {stage: {"status", "seconds", "threads", "precision"}}, "seconds": wall}; status is
+    ran, unchanged, done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped
+    after a failure); ``threads`` the stage's ``OMP_NUM_THREADS``, ``precision`` what it trained or
+    encoded text in (absent where it did neither, or DVC found it unchanged)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     machine = machine_info()                 # before any stage runs: the commit the run started from
     previous = previous_times(log_dir)
@@ -237,9 +255,11 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     pending = set(graph)
     running: dict[str, tuple[subprocess.Popen, float, Path, object]] = {}
     result: dict[str, dict] = {}
+    threads: dict[str, int | None] = {}
     failed = False
     t0 = time.monotonic()
     from party.lifecycle import terminate_on_sigterm
+    from party.training import STAGE_INFO_ENV
     with terminate_on_sigterm():        # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
         try:
             while pending or running:
@@ -257,11 +277,14 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                     for s in ready:
                         pending.discard(s)
                         log = log_dir / f"{s}.log"
+                        info = log_dir / f"{s}.info.json"          # what the stage ran with (note_stage)
+                        info.unlink(missing_ok=True)
+                        threads[s] = int(env.get("OMP_NUM_THREADS") or 0) or None
                         out = open(log, "w") if jobs > 1 else None
                         cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
                         # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
                         # without passing it on)
-                        running[s] = (subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT
+                        running[s] = (subprocess.Popen(cmd, env={**env, STAGE_INFO_ENV: str(info)}, stdout=out, stderr=subprocess.STDOUT
                                                        if out else None, start_new_session=True),
                                       time.monotonic(), log, out)
                         print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
@@ -283,14 +306,14 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                     del running[s]
                     if p.returncode != 0:
                         failed = True
-                        result[s] = {"status": "failed", "seconds": secs}
+                        result[s] = {"status": "failed", "seconds": secs, **_stage_info(log_dir, s, threads.get(s))}
                         tail = _tail(log) if jobs > 1 else ""
                         print(f"party repro: {s}: FAILED after {secs:.0f} s (exit {p.returncode})"
                               + (f"; last lines of {log}:\n{tail}" if tail else ""), file=sys.stderr, flush=True)
                         continue
                     status = "done" if jobs == 1 else (
                         "unchanged" if SKIPPED_MARK in log.read_text(errors="replace") else "ran")
-                    result[s] = {"status": status, "seconds": secs}
+                    result[s] = {"status": status, "seconds": secs, **_stage_info(log_dir, s, threads.get(s))}
                     print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
         except KeyboardInterrupt:
             for s, (p, *_rest) in running.items():

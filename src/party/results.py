@@ -356,12 +356,14 @@ def render_times(repro: Mapping | None) -> list[str]:
         return out + ["Not recorded: no `logs/repro/summary.json` (run the pipeline with `party repro`).", ""]
     stages = repro.get("stages") or {}
     total = sum(float(r.get("seconds") or 0.0) for r in stages.values())
-    out += ["| Stage | Status | Seconds | Share |", "|---|---|---:|---:|"]
+    out += ["| Stage | Status | Threads | Precision | Seconds | Share |", "|---|---|---:|---|---:|---:|"]
     for s, r in stages.items():
         sec = float(r.get("seconds") or 0.0)
-        out.append(f"| {s} | {r.get('status', '?')} | {sec:.1f} | "
-                   f"{100 * sec / total:.1f}% |" if total else f"| {s} | {r.get('status', '?')} | {sec:.1f} | - |")
-    out.append(f"| **sum of the stages** | | {total:.1f} | 100% |" if total else "| **sum of the stages** | | 0.0 | - |")
+        prec = r.get("precision")
+        prec = ", ".join(prec) if isinstance(prec, list) else (prec or "-")
+        out.append(f"| {s} | {r.get('status', '?')} | {r.get('threads') or '-'} | {prec} | {sec:.1f} | "
+                   + (f"{100 * sec / total:.1f}% |" if total else "- |"))
+    out.append(f"| **sum of the stages** | | | | {total:.1f} | " + ("100% |" if total else "- |"))
     out.append("")
     wall = repro.get("seconds")
     if wall is not None:

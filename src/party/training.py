@@ -147,6 +147,32 @@ def precision_identity(precision: str) -> dict[str, str]:
     return {} if precision == "32-true" else {"precision": precision}
 
 
+#: the file a stage started by ``party repro`` adds what it ran with to (``note_stage``)
+STAGE_INFO_ENV = "PARTY_STAGE_INFO"
+
+
+def note_stage(**info: str) -> None:
+    """Tell ``party repro`` what this stage ran with (``precision=...``): each value is added to the
+    list under its key in the JSON file ``$PARTY_STAGE_INFO`` names, which ``party repro`` sets for
+    every stage it starts and reads into ``logs/repro/summary.json`` when the stage ends. Nothing
+    happens without the variable (a stage run by hand, or by ``dvc repro``)."""
+    path = os.environ.get(STAGE_INFO_ENV)
+    if not path:
+        return
+    f = Path(path)
+    try:
+        cur = json.loads(f.read_text()) if f.exists() else {}
+    except (OSError, ValueError):
+        cur = {}
+    for k, v in info.items():
+        cur.setdefault(k, [])
+        if v not in cur[k]:
+            cur[k].append(v)
+    tmp = f.with_name(f.name + ".tmp")
+    tmp.write_text(json.dumps(cur))
+    os.replace(tmp, f)
+
+
 def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
     """``lightning.Trainer`` keyword arguments from ``trainer.*``, ``section`` winning (a
     section key set to null inherits ``trainer.*``); ``precision: auto`` resolved
@@ -158,6 +184,7 @@ def trainer_kwargs(cfg, section: Mapping | None = None) -> dict[str, Any]:
         if k in TRAINER_KEYS and v is not None:
             t[k] = v
     t["precision"] = resolve_precision(str(t["precision"]), str(t["accelerator"]))
+    note_stage(precision=t["precision"])
     return {k: t[k] for k in TRAINER_KEYS}
 
 

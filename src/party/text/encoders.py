@@ -72,7 +72,7 @@ def _get(cfg, key, default=None):
 def resolve_text_precision(cfg) -> str:
     """``text.precision`` resolved for the device ``text.device`` resolves to: ``32-true`` or
     ``bf16-mixed`` (``auto`` on a device other than CUDA or the CPU: ``32-true``)."""
-    from party.training import resolve_precision
+    from party.training import note_stage, resolve_precision
 
     p, kind = str(cfg.precision), resolve_device(_get(cfg, "device", "auto")).type
     if kind in ("cuda", "cpu"):
@@ -81,6 +81,7 @@ def resolve_text_precision(cfg) -> str:
         p = "32-true"
     if p not in ("32-true", "bf16-mixed"):
         raise ValueError(f"text.precision={cfg.precision!r}: choose auto, 32-true or bf16-mixed")
+    note_stage(precision=p)
     return p
 
 
