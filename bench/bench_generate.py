@@ -1,19 +1,24 @@
-"""Generation speed of the token generators: KV cache against full recomputation, batch 32 against
-batch 1, measured in the same run on the paper model dims (random weights).
+"""Generation speed of the token generators at batch 1 and 32: the StackedDecoder against the module
+path against no KV cache, measured in the same run in interleaved rounds (random weights).
 
-    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3]
-                                   [--methods party,holistic,party_parts_only,humantomato]
-                                   [--profile paper|cpu] [--text-dim 512] [--threads 1] [--device cpu]
+    python bench/bench_generate.py [--frames 196] [--n1 20] [--n32 3] [--rounds 3]
+                                   [--methods party,holistic,party_parts_only,parco,humantomato]
+                                   [--profile cpu|paper] [--cond-scale S] [--text-dim 384] [--threads 2]
+                                   [--device cpu]
 
-Model numbers come from conf/generator/<profile>.yaml (``model``, ``methods``; ``cpu`` layers the
-CPU budget on the paper's); vocabularies and code windows from conf/vqvae/paper.yaml
-(``tokenizers``). HumanTOMATO's Hierarchical-GPT (``humantomato``) decodes rows of 2 core codes + 1
-arms code per 4 frames of its H2VQ stream (3 x frames // 4 positions). Every sample is forced to the full
-length (frames // w codes per stream), so every run generates the same number of tokens.
-Prints, per method: parameters per module, average inference time per sample at batch 1 and
-samples/s at batch 32, with and without the cache, and the ratios (cache vs no cache at batch 1;
-batch-32 per-sample throughput vs batch 1). Nothing is asserted (speed is machine-dependent);
-cached and recomputed tokens are checked equal so the comparison is like for like.
+Model numbers come from conf/generator/<profile>.yaml (``model``, ``methods``; ``cpu``, the
+default, layers the CPU budget on the paper's), the guidance scale from its
+``generate.cond_scale`` (methods trained with ``cond_drop`` > 0; 2 at the CPU budget), vocabularies
+and code windows from conf/vqvae/paper.yaml (``tokenizers``, with conf/vqvae/cpu.yaml's on top for
+``cpu``). HumanTOMATO's Hierarchical-GPT (``humantomato``) decodes rows of 2 core codes + 1 arms
+code per 4 frames of its H2VQ stream (3 x frames // 4 positions); the ParCo-like method
+(``parco``) its six part streams in one batched network of its own (no ``decoder`` switch: its
+cached path and no cache). Every sample is forced to the full length (frames // w codes per
+stream), so every run generates the same number of tokens. Prints, per method: parameters, ms per
+sample at batch 1 and samples/s at batch 32 for ``decoder="stacked"`` (the default), ``"modules"``
+and ``use_cache=False``, the ratios, and how many samples came out with the recomputed tokens.
+Nothing is asserted (speed is machine-dependent). Run under ``ATEN_CPU_CAPABILITY=avx2
+ONEDNN_MAX_CPU_ISA=AVX2`` for an AVX2-only CPU (docs/performance.md).
 
 Also printed, per method: the **matmul ceiling** of the cache's batch-1 gain on this machine. A
 stream of n positions is decoded in n steps; step L recomputes L rows without the cache, 1 row
@@ -27,6 +32,7 @@ the same run.
 from __future__ import annotations
 
 import argparse
+import inspect
 import time
 from pathlib import Path
 
@@ -34,6 +40,7 @@ import torch
 from omegaconf import OmegaConf
 
 from party.methods.party.model import GeneratorSpec, PartyGenerator
+from party.repro import cpu_model
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -48,7 +55,7 @@ def timed(model: PartyGenerator, c: torch.Tensor, lengths: dict, mode: str, seed
     sync(c.device)
     t0 = time.perf_counter()
     kw = {"use_cache": mode != "none"}
-    if mode != "none":
+    if mode != "none" and "decoder" in inspect.signature(model.generate).parameters:
         kw["decoder"] = mode
     out = model.generate(c, lengths=lengths, sampling="sample", generator=torch.Generator(c.device).manual_seed(seed),
                          cond_scale=cond_scale, **kw)
@@ -65,6 +72,11 @@ def build(name: str, gen_cfg, vocab: dict, windows: dict, text_dim: int):
     """The method ``name`` of ``gen_cfg`` with random weights: a ParTY-family model or the Hierarchical-GPT."""
     entry = gen_cfg.methods[name]
     torch.manual_seed(0)
+    if entry.family == "parco":
+        from party.methods.parco.model import ParcoGenerator, ParcoSpec
+        streams = OmegaConf.load(REPO / "conf/dataset/parts/t2m.yaml").part_tokenizers
+        spec = ParcoSpec.from_config(gen_cfg.model, {**entry, "streams": list(streams)}, vocab, windows, text_dim)
+        return ParcoGenerator(spec)
     if entry.family == "humantomato":
         from party.methods.humantomato.hgpt import HGPTSpec, HierarchicalGPT
         s = str(entry.stream)
@@ -141,7 +153,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=196)
     ap.add_argument("--n1", type=int, default=20, help="samples timed at batch 1")
     ap.add_argument("--n32", type=int, default=3, help="batches of 32 timed")
-    ap.add_argument("--methods", default="party,holistic,party_parts_only,humantomato")
+    ap.add_argument("--methods", default="party,holistic,party_parts_only,parco,humantomato")
     ap.add_argument("--profile", default="cpu", choices=["paper", "cpu"], help="conf/generator/<profile>.yaml")
     ap.add_argument("--cond-scale", type=float, default=None,
                     help="guidance scale of the methods trained with cond_drop > 0 (default: the profile's "
@@ -162,11 +174,15 @@ def main() -> None:
     if a.cond_scale is None:
         a.cond_scale = float(gen_cfg.generate.cond_scale)
     tok_cfg = OmegaConf.load(REPO / "conf/vqvae/paper.yaml").tokenizers
+    if a.profile == "cpu":                         # the CPU budget's part tokenizers (ParCo-like's streams)
+        tok_cfg = OmegaConf.merge(tok_cfg, OmegaConf.load(REPO / "conf/vqvae/cpu.yaml").tokenizers)
     vocab = {s: int(t.codebook_size) for s, t in tok_cfg.items()}
     windows = {s: int(t.window) for s, t in tok_cfg.items()}
     print(f"{a.frames} frames: " + ", ".join(f"{s} {a.frames // w} codes (w {w}, K {vocab[s]})"
                                             for s, w in windows.items())
           + f"; model {dict(gen_cfg.model)}; device {device}, {torch.get_num_threads()} thread(s)")
+    print(f"CPU {cpu_model()}, ATen CPU capability {torch.backends.cpu.get_cpu_capability()}, fp32 "
+          f"(generation never autocasts); profile {a.profile}, guidance {a.cond_scale:g}")
     modes = {"stacked": "cache, StackedDecoder", "modules": "cache, module forward", "none": "no cache"}
     for name in a.methods.split(","):
         model = build(name, gen_cfg, vocab, windows, a.text_dim).to(device).eval()
@@ -176,17 +192,28 @@ def main() -> None:
         print(f"\n[{name}] guidance scale {scale:g}; params: "
               + ", ".join(f"{k} {v / 1e6:.3f}M" for k, v in counts.items() if v))
         res = {}
+        own = {m: l for m, l in modes.items()
+               if m != "stacked" or "decoder" in inspect.signature(model.generate).parameters}
+        if "stacked" not in own:                   # a generator with its own cached path only (ParCo-like)
+            own["modules"] = "cache (its own batched forward)"
         for batch, reps in ((1, a.n1), (32, a.n32)):
             for _ in range(a.rounds):              # interleaved rounds: drift of a shared machine hits every mode
-                for mode in modes:
+                for mode in own:
                     total, outs = run(model, batch, reps, mode, a.frames, a.text_dim, device, scale)
                     t, o = res.get((batch, mode), (0.0, []))
                     res[batch, mode] = (t + total / (batch * reps * a.rounds), o or outs)
         print(f"{'':36s} {'ms/sample':>10s} {'samples/s':>10s}")
         for batch in (1, 32):
-            for mode, label in modes.items():
+            for mode, label in own.items():
                 per = res[batch, mode][0]
                 print(f"{f'batch {batch:2d} {label}':36s} {per * 1e3:10.2f} {1 / per:10.1f}")
+        if "stacked" not in own:
+            for batch in (1, 32):
+                mo, no = res[batch, "modules"][0], res[batch, "none"][0]
+                print(f"batch {batch}: cache vs recomputation {no / mo:.2f}x; samples with the recomputed tokens: "
+                      f"{'%d/%d' % same_tokens(res[batch, 'modules'][1], res[batch, 'none'][1])}")
+            print(f"batch 32 vs batch 1 per-sample throughput: {res[1, 'modules'][0] / res[32, 'modules'][0]:.1f}x")
+            continue
         for batch in (1, 32):
             st, mo, no = (res[batch, m][0] for m in modes)
             agree = ", ".join(f"{m} {'%d/%d' % same_tokens(res[batch, m][1], res[batch, 'none'][1])}"
