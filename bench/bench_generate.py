@@ -75,7 +75,8 @@ def build(name: str, gen_cfg, vocab: dict, windows: dict, text_dim: int):
     if entry.family == "parco":
         from party.methods.parco.model import ParcoGenerator, ParcoSpec
         streams = OmegaConf.load(REPO / "conf/dataset/parts/t2m.yaml").part_tokenizers
-        spec = ParcoSpec.from_config(gen_cfg.model, {**entry, "streams": list(streams)}, vocab, windows, text_dim)
+        entry = {**OmegaConf.to_container(entry, resolve=False), "streams": [str(s) for s in streams]}
+        spec = ParcoSpec.from_config(gen_cfg.model, entry, vocab, windows, text_dim)
         return ParcoGenerator(spec)
     if entry.family == "humantomato":
         from party.methods.humantomato.hgpt import HGPTSpec, HierarchicalGPT

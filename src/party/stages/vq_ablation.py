@@ -37,7 +37,7 @@ from party.sweep import expand, load_sweep, run_grid
 from party.tokenizers.train import train_tokenizer
 
 COLUMNS = ["point", "family", "window", "lte", "gte", "levels", "bits_per_frame", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
-           "pa_mpjpe_mm", "accel_mm", "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "status"]
+           "pa_mpjpe_mm", "accel_mm", "recon_fid", "recon_fid_ci95", "perplexity", "code_usage", "steps", "train_s", "status"]
 ERRORS = ("mpjpe", "pa_mpjpe", "accel")       # per group of vqvae.metrics.groups, after accel_mm
 
 
@@ -75,7 +75,9 @@ def _notes(spec: dict) -> str:
             "global joint positions, mm per frame^2; <metric>_<group>: over that group's joints "
             "(vqvae.metrics.groups).\n"
             "Reconstruction FID: the evaluate protocol on `eval.split` with the stream's evaluator "
-            "(empty: no evaluator trained).\n\n"
+            "(empty: no evaluator trained).\n"
+            "train_s: seconds of training and validation in the process that trained the point (a point "
+            "resumed from a checkpoint: since it resumed).\n\n"
             "Same grid as queued DVC experiments (then `dvc queue start -j 1`):\n\n```\n"
             + "\n".join(dvc_commands(spec, expand(spec))) + "\n```\n")
 
@@ -111,6 +113,7 @@ def run(cfg, run_) -> list[dict]:
                 **_fid(scorers, pcfg, stream, out / "points" / p["label"]),
                 "perplexity": round(m["val/perplexity"], 1),
                 "code_usage": round(m["val/code_usage"], 3), "steps": m["step"],
+                "train_s": m.get("train_seconds_this_run"),
                 "status": m["diagnostics"]["status"]}
 
     rows = run_grid(cfg, spec, "train_vqvae", point, out, cols, _notes(spec))
