@@ -429,10 +429,9 @@ class _Generation:
         if use_cache and decoder == "modules":
             self.cache = {s: model.gpt[s].body.new_cache(self.N, c.dtype, dev) for s in self.streams}
         elif use_cache:               # one decoder for the part streams (one shape), one for the holistic
-            groups = [[s] for s in self.streams if s == model.hol] + [[p for p in self.streams if p != model.hol]]
-            for group in filter(None, groups):
-                dec = StackedDecoder([model.gpt[s].body for s in group], self.N, c.dtype, dev)
-                self.dec.update({s: (dec, i) for i, s in enumerate(group)})
+            for group in ([p for p in model.parts if p in self.streams], [s for s in self.streams if s == model.hol]):
+                if group:
+                    self.dec[tuple(group)] = StackedDecoder([model.gpt[s].body for s in group], self.N, c.dtype, dev)
         self.hpf_cache = model.hpf.start(self.N, c.dtype, dev) if use_cache and model.hpf is not None else None
         if self.hpf_cache is not None:                 # the step index of every holistic position, once
             T, w_h, w_p, la = model._sched()
@@ -473,17 +472,18 @@ class _Generation:
         g, k = self.m.gpt[s], self.tok[s].shape[1]
         return g.cond(self.cond[s])[:, None] if k == 0 else g.tok(self._rows(self.tok[s][:, -1:]))
 
-    def _decode(self, streams: list[str]) -> dict[str, torch.Tensor]:
-        """Next-token logits (N, K + 1) of ``streams`` (one ``StackedDecoder``) at their next position."""
-        dec = self.dec[streams[0]][0]
-        h = dec.step(torch.stack([self._last_input(s)[:, 0] for s in streams]))
+    def _decode(self, streams: tuple[str, ...], x: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Next-token logits (N, K + 1) of ``streams`` (the group of one ``StackedDecoder``) at their
+        next position, from their last inputs or ``x`` (S, N, dim)."""
+        x = torch.stack([self._last_input(s)[:, 0] for s in streams]) if x is None else x
+        h = self.dec[streams].step(x)
         return {s: self.m.gpt[s].head(h[i]) for i, s in enumerate(streams)}
 
     def parts_step(self) -> None:
         """One token of every part stream (lock-step; a finished stream gets PAD)."""
         parts = self.m.parts
         live = [p for p in parts if not bool(self.done[p].all())]
-        logits = self._decode(parts) if live and self.dec else {}
+        logits = self._decode(tuple(parts)) if live and self.dec else {}
         for p in parts:
             g, k = self.m.gpt[p], self.tok[p].shape[1]
             if p not in live:                   # nothing left to generate: keep the lock-step with PAD
@@ -505,7 +505,7 @@ class _Generation:
             if self.guidance is not None:
                 x = x + self.guidance
             if self.dec:
-                logits = g.head(self.dec[h][0].step(x[None, :, 0])[0])
+                logits = self._decode((h,), x[None, :, 0])[h]
             else:
                 logits = g(x, start=j, cache=self.cache[h])[:, -1]
         else:
