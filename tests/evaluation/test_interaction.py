@@ -519,3 +519,27 @@ def test_conf_keys_and_schema():
                                          "vel_unit": "cm_per_frame"}
     with pytest.raises(ConfigError, match="eval.interaction.pos_unit"):
         compose(["eval.interaction.pos_unit=km"], ROOT / "conf")
+
+
+@pytest.mark.parametrize("dataset,eval_group", [("synthetic", "default"), ("kit", "kit")])
+def test_interaction_joints_name_the_same_body_on_each_skeleton(dataset, eval_group):
+    """eval.interaction's joint ids, as `party params dataset=<d> eval=<e>` composes them, name wrists,
+    feet, shoulders / hips and the bones joining the parts of that dataset's skeleton."""
+    from party.config import compose
+    from party.motion.skeleton import KIT_JOINT_NAMES, T2M_JOINT_NAMES
+    cfg = compose([f"dataset={dataset}", f"eval={eval_group}"] + (["dataset.root=/nowhere"] if dataset == "kit" else []),
+                  ROOT / "conf")
+    sk = get_skeleton(str(cfg.dataset.get("skeleton", "t2m")))
+    names = {"t2m": T2M_JOINT_NAMES, "kit": KIT_JOINT_NAMES}[sk.name]
+    c = cfg.eval.interaction
+    name = lambda j: names[int(j)]  # noqa: E731
+    assert [name(j) for j in c.hand_joints] == ["l_wrist", "r_wrist"]
+    assert [name(j) for j in c.foot_joints] == ({"t2m": ["l_foot", "r_foot"], "kit": ["l_toe", "r_toe"]}[sk.name])
+    assert {name(j).split("_", 1)[1] for j in c.boundary_joints} <= {"collar", "shoulder", "hip"}
+    assert {"shoulder", "hip"} <= {name(j).split("_", 1)[1] for j in c.boundary_joints}
+    parts = cfg.dataset.parts.coherence          # every seam bone is a skeleton edge between two coherence parts
+    part_of = {int(j): p for p, js in parts.items() for j in js}
+    for a, b in c.seam_bones:
+        assert sk.parents[int(b)] == int(a), (name(a), name(b))
+        assert part_of.get(int(a)) != part_of.get(int(b)), (name(a), name(b))
+    assert len(c.seam_bones) == 4
