@@ -284,8 +284,9 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                         cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
                         # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
                         # without passing it on)
-                        running[s] = (subprocess.Popen(cmd, env={**env, STAGE_INFO_ENV: str(info)}, stdout=out, stderr=subprocess.STDOUT
-                                                       if out else None, start_new_session=True),
+                        running[s] = (subprocess.Popen(cmd, env={**env, STAGE_INFO_ENV: str(info)}, stdout=out,
+                                                       stderr=subprocess.STDOUT if out else None,
+                                                       start_new_session=True),
                                       time.monotonic(), log, out)
                         print(f"party repro: {s}: started" + (f" (log: {log})" if out else ""), flush=True)
                 elif not running:

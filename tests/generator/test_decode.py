@@ -89,3 +89,11 @@ def test_evaluating_restores_the_mode_it_found():
     with evaluating(m):
         assert not m.hpf.training
     assert not m.training and not m.hpf.training        # as ``train(was)`` always did
+
+
+def test_kv_cache_views_follow_its_buffers_when_moved():
+    from party.generator.kv_cache import KVCache
+    cache = KVCache(2, 3, 2, 5, 4, torch.float32, "cpu").to(torch.float64)
+    k = torch.randn(3, 2, 2, 4, dtype=torch.float64)
+    ka, _ = cache.update(1, k, k)
+    assert ka.dtype == torch.float64 and torch.equal(cache.k[1, :, :, :2], k) and torch.equal(ka, k)

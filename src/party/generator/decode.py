@@ -16,7 +16,7 @@ calls and reading its weights than in arithmetic. ``StackedDecoder`` is the cach
 
 Same arithmetic as ``Transformer.forward`` with a cache, in another order: outputs agree to float
 rounding (``tests/generator/test_decode.py``). ``bench/bench_generate.py`` times it against the
-module path in the same run (``--decoder``).
+module path (``decoder="modules"``) and against no cache in the same run.
 """
 from __future__ import annotations
 
@@ -61,7 +61,6 @@ class StackedDecoder:
         self.layers, self.pos, self.ln_f, self.eps = _stacked_weights(bodies, dtype, device)
         self.cache = KVCache(len(self.layers), self.S * batch, self.heads, first.positions, self.dim // self.heads,
                              dtype, device)
-
 
     @property
     def length(self) -> int:

@@ -21,8 +21,16 @@ class KVCache(nn.Module):
         self.register_buffer("v", torch.empty(shape, dtype=dtype, device=device), persistent=False)
         self.max_len = max_len
         self.fill = [0] * layers
+        self._views()
+
+    def _views(self) -> None:
         # per-layer views, made once: indexing the 5-d buffers at every step costs more than the copy
-        self._k, self._v = [self.k[i] for i in range(layers)], [self.v[i] for i in range(layers)]
+        self._k, self._v = [self.k[i] for i in range(len(self.fill))], [self.v[i] for i in range(len(self.fill))]
+
+    def _apply(self, fn, *args, **kwargs):
+        out = super()._apply(fn, *args, **kwargs)     # .to() / .half() replace the buffers: new views
+        self._views()
+        return out
 
     def reset(self) -> None:
         self.fill = [0] * len(self.fill)

@@ -33,6 +33,7 @@ from party import tracking
 from party.config import plain
 from party.generator.data import LengthBucketBatchSampler, build_generator_data, collate_generator
 from party.generator.lit import GeneratorLit
+from party.generator.layers import evaluating
 from party.io import write_json
 from party.training import (AtomicCheckpoint, TrainingSession, build_trainer, config_key, data_identity, file_sha,
                             precision_identity, start_training, trainer_kwargs)
@@ -74,10 +75,8 @@ def _evaluate(model, loader) -> dict[str, float]:
     """Validation losses in eval mode; the model's train/eval mode is restored afterwards (Lightning
     does not call ``.train()`` at fit start: a model left in eval mode trains without dropout and
     without ``cond_drop``)."""
-    was = model.training
-    model.eval()
     tot, n = {}, 0
-    try:
+    with evaluating(model):
         for b in loader:
             out = model.losses(b)
             k = len(b["caption"])
@@ -85,8 +84,6 @@ def _evaluate(model, loader) -> dict[str, float]:
                 if key != "gates":
                     tot[key] = tot.get(key, 0.0) + float(v) * k
             n += k
-    finally:
-        model.train(was)
     return {f"val/{k}": v / max(n, 1) for k, v in tot.items()}
 
 

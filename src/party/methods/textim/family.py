@@ -35,6 +35,7 @@ import torch
 from omegaconf import MISSING
 from torch.utils.data import DataLoader
 
+from party.generator.layers import evaluating
 from party.methods import register
 from party.methods.base import MethodFamily, TrainedMethod
 from party.schema import _off_step
@@ -199,12 +200,10 @@ def _lit_class():
 def _evaluate(net: TextIMNet, loader, seed: int) -> dict[str, float]:
     """Validation losses in eval mode at fixed noise and timesteps (``seed``), and the zero prediction's
     (``zero_*``: the dataset mean, the trivial baseline) on the same batches."""
-    was = net.training
-    net.eval()
     gen = torch.Generator().manual_seed(int(seed))
     tot: dict[str, float] = {}
     n = 0
-    try:
+    with evaluating(net):
         for b in loader:
             out = net.losses(b, gen)
             out.update({f"zero_{k}": v for k, v in net.zero_losses(b).items()})
@@ -212,8 +211,6 @@ def _evaluate(net: TextIMNet, loader, seed: int) -> dict[str, float]:
             for key, v in out.items():
                 tot[key] = tot.get(key, 0.0) + float(v) * k
             n += k
-    finally:
-        net.train(was)
     return {f"val/{k}": v / max(n, 1) for k, v in tot.items()}
 
 
