@@ -184,15 +184,46 @@ def composed_params():
 def test_sweep_point_overrides_are_schema_keys(name, composed_params):
     """Every point of conf/sweep/<name>.yaml sets keys that exist, to values of the schema's types
     (applied as vq_ablation does: to the composed config, values parsed as YAML)."""
+    import copy
     points = _sweep_points(name)
     assert points
     for overrides in points:
-        cfg = OmegaConf.create(composed_params)
+        cfg = copy.deepcopy(composed_params)
         for o in overrides:
             key, value = o.split("=", 1)
-            assert OmegaConf.select(cfg, key, default=KeyError) is not KeyError, f"{name}: {o}: no such key"
-            OmegaConf.update(cfg, key, yaml.safe_load(value), merge=True)
+            assert _update(cfg, key, yaml.safe_load(value)), f"{name}: {o}: no such key"
         validate(cfg, f"sweep {name}")
+
+
+def _update(cfg: dict, key: str, value) -> bool:
+    """``OmegaConf.update(cfg, key, value, merge=True)`` on plain data (a mapping merges into a
+    mapping, anything else replaces); False if ``key`` is not in ``cfg``."""
+    *path, last = key.split(".")
+    for k in path:
+        if not isinstance(cfg, dict) or k not in cfg:
+            return False
+        cfg = cfg[k]
+    if not isinstance(cfg, dict) or last not in cfg:
+        return False
+    if isinstance(cfg[last], dict) and isinstance(value, dict):
+        for k, v in value.items():
+            if k in cfg[last] and isinstance(cfg[last][k], dict) and isinstance(v, dict):
+                _update(cfg[last], k, v)
+            else:
+                cfg[last][k] = v
+    else:
+        cfg[last] = value
+    return True
+
+
+def test_update_on_plain_data_is_omegaconfs():
+    base = {"a": {"b": 1, "c": {"d": [1, 2], "e": "x"}}, "f": 2}
+    for key, value in (("a.c", {"e": "y", "g": 3}), ("a.c.d", [3]), ("f", {"z": 1}), ("a", {"c": {"d": None}})):
+        ours, theirs = yaml.safe_load(yaml.safe_dump(base)), OmegaConf.create(base)
+        assert _update(ours, key, value)
+        OmegaConf.update(theirs, key, value, merge=True)
+        assert ours == OmegaConf.to_container(theirs), key
+    assert not _update({"a": {}}, "a.b", 1) and not _update({"a": 1}, "a.b", 1)
 
 
 def test_sweep_files_are_well_formed_grids(tmp_path):

@@ -44,6 +44,7 @@ in a ``List[float]`` inside a ``Dict`` (``limits_deg: {elbow: [0, 150]}``).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import functools
@@ -1185,8 +1186,21 @@ def _yaml_scalar(s: str):
         return s
 
 
+def _is_data(x) -> bool:
+    """Plain YAML data without interpolations: str-keyed dicts, lists, scalars, no ``${``."""
+    if isinstance(x, dict):
+        return all(isinstance(k, str) and _is_data(v) for k, v in x.items())
+    if isinstance(x, list):
+        return all(_is_data(v) for v in x)
+    if isinstance(x, str):
+        return "${" not in x
+    return x is None or isinstance(x, (bool, int, float))
+
+
 def _plain(cfg, where: str) -> dict:
     from party.secrets import defer_unset, scan
+    if isinstance(cfg, dict) and _is_data(cfg):   # nothing to resolve: OmegaConf would return a copy
+        return copy.deepcopy(cfg)
     try:
         node = cfg if isinstance(cfg, (DictConfig, ListConfig)) else OmegaConf.create(cfg)
         scan(node)                     # values read with oc.env are masked wherever they are logged
