@@ -205,14 +205,8 @@ def _update(cfg: dict, key: str, value) -> bool:
         cfg = cfg[k]
     if not isinstance(cfg, dict) or last not in cfg:
         return False
-    if isinstance(cfg[last], dict) and isinstance(value, dict):
-        for k, v in value.items():
-            if k in cfg[last] and isinstance(cfg[last][k], dict) and isinstance(v, dict):
-                _update(cfg[last], k, v)
-            else:
-                cfg[last][k] = v
-    else:
-        cfg[last] = value
+    from party.tokenizers.config import _merge          # the project's recursive merge of mappings
+    cfg[last] = _merge(cfg[last], value) if isinstance(cfg[last], dict) and isinstance(value, dict) else value
     return True
 
 
