@@ -111,6 +111,44 @@ def test_a_failure_blocks_what_depends_on_it(fake, capsys):
     assert st["d"] == "blocked" and st["c"] == st["e"] == "done"
 
 
+def test_stages_status_found_unchanged_start_no_dvc_unless_upstream_ran(fake):
+    """`unchanged` (one `dvc status` before the run): such a stage is not started when everything
+    upstream of it was unchanged too; once an upstream stage ran, DVC decides (it may rerun)."""
+    summary, t, _ = fake({"unchanged": ["d"]}, jobs=2, unchanged={"a", "c", "d", "e"})
+    st = {s: r["status"] for s, r in summary["stages"].items()}
+    assert st == {"a": "unchanged", "b": "ran", "c": "unchanged", "d": "unchanged", "e": "unchanged"}
+    assert {s for s, _ in t} == {"b", "d"}       # b: status said changed; d: b ran before it
+    summary, t, _ = fake({"unchanged": ["b"]}, jobs=2, unchanged={"a", "c", "d", "e"})
+    assert {s for s, _ in t} == {"b"}            # DVC found b unchanged after all: d's inputs are as before
+    summary, t, _ = fake({}, jobs=1, unchanged=set(GRAPH))
+    assert not t and all(r["status"] == "unchanged" for r in summary["stages"].values())
+
+
+def test_changed_stages_is_dvcs_status(tmp_path, monkeypatch):
+    """The real DVC: a two-stage pipeline, run, then one parameter of the second changed."""
+    monkeypatch.chdir(tmp_path)
+    subprocess.run(["git", "init", "-q"], check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], check=True)
+    (tmp_path / "params.yaml").write_text("x: 1\ny: 1\n")
+    (tmp_path / "dvc.yaml").write_text(textwrap.dedent("""\
+        stages:
+          one:
+            cmd: echo 1 > one.txt
+            params: [x]
+            outs: [one.txt]
+          two:
+            cmd: cat one.txt > two.txt
+            deps: [one.txt]
+            params: [y]
+            outs: [two.txt]
+        """))
+    assert repro.changed_stages() == {"one", "two"}           # never run: not in dvc.lock
+    subprocess.run([sys.executable, "-m", "dvc", "repro", "-q"], check=True)
+    assert repro.changed_stages() == set()
+    (tmp_path / "params.yaml").write_text("x: 1\ny: 2\n")
+    assert repro.changed_stages() == {"two"}
+
+
 def test_targets_select_upstream_and_longest_path_starts_first():
     assert set(repro.select(GRAPH, ["d"])) == {"a", "b", "c", "d"}
     g = {"prep": [], "tok@x": ["prep"], "tok@y": ["prep"], "ev": ["prep"], "gen": ["tok@x", "tok@y"],

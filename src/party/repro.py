@@ -10,7 +10,8 @@ while a stage is collected and committed), as soon as every stage it depends on 
 at most N at a time, longest remaining path first (the previous run's stage times, else
 ``repro.expected_seconds`` of params.yaml, else 1 per stage).
 So DVC still decides what is changed and records every stage in ``dvc.lock``; a stage that did
-not change is skipped by DVC as in ``dvc repro``. ``repro.expected_seconds`` holds seconds per
+not change is skipped by DVC as in ``dvc repro``. One ``dvc status`` before the run spares the rest:
+a stage it finds up to date, with everything upstream of it, is not started at all. ``repro.expected_seconds`` holds seconds per
 stage (``prepare``) or per stage template (``train_vqvae``: every ``train_vqvae@<item>`` of its
 ``foreach``), and a ``template@item`` entry (``train_vqvae@arms``) overrides its template's value.
 
@@ -50,6 +51,14 @@ def stage_graph(root: Path = Path(".")) -> dict[str, list[str]]:
     with Repo(str(root)) as repo:
         g = repo.index.graph
         return {s.addressing: sorted(d.addressing for d in g.successors(s)) for s in g.nodes}
+
+
+def changed_stages(root: Path = Path(".")) -> set[str]:
+    """The stages ``dvc status`` finds changed (a dependency, parameter, command or output differs
+    from ``dvc.lock``, or the stage is not in it), by address; DVC's own check, in this process."""
+    from dvc.repo import Repo
+    with Repo(str(root)) as repo:
+        return {str(k).rsplit(":", 1)[-1] for k in repo.status()}
 
 
 def select(graph: dict[str, list[str]], targets: list[str]) -> dict[str, list[str]]:
@@ -242,8 +251,11 @@ def _wait_group(pgid: int, timeout_s: float = 120.0) -> None:
 
 
 def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: str = "dvc",
-        log_dir: Path = LOG_DIR, extra: list[str] | None = None) -> dict:
+        log_dir: Path = LOG_DIR, extra: list[str] | None = None, unchanged: Iterable[str] = ()) -> dict:
     """Run every stage of ``graph`` (stage -> deps) through DVC, at most ``jobs`` at a time.
+    A stage of ``unchanged`` (``dvc status`` found it up to date before the run) whose every
+    upstream stage was also found unchanged is marked so without starting DVC for it (its inputs
+    cannot have changed since); any other stage is left to DVC, which skips it if nothing changed.
     Returns {"stages": {stage: {"status", "seconds", "threads", "precision"}}, "seconds": wall}; status is
     ran, unchanged, done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped
     after a failure); ``threads`` the stage's ``OMP_NUM_THREADS``, ``precision`` what it trained or
@@ -270,6 +282,11 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                             pending.discard(s)
                             result[s] = {"status": "blocked", "seconds": 0.0}
                             print(f"party repro: {s}: not run ({', '.join(graph[s])} failed)", flush=True)
+                        elif s in unchanged and all(result.get(d, {}).get("status") == "unchanged"
+                                                    for d in graph[s]):
+                            pending.discard(s)
+                            result[s] = {"status": "unchanged", "seconds": 0.0}
+                            print(f"party repro: {s}: unchanged", flush=True)
                         elif all(result.get(d, {}).get("status") in OK for d in graph[s]):
                             ready.append(s)
                     ready = ready[:max(0, jobs - len(running))]
@@ -351,6 +368,11 @@ def main(argv: list[str]) -> int:
         print("party repro: no dvc.yaml here; run it in the project's root", file=sys.stderr)
         return 2
     graph = select(stage_graph(), a.targets)
-    summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None)
+    # one `dvc status` for all: a stage it finds up to date, with every stage upstream of it too,
+    # is not started (each `dvc repro --single-item` costs seconds of DVC reading dvc.yaml,
+    # params.yaml and dvc.lock to find that out)
+    unchanged = () if a.force else set(graph) - changed_stages()
+    summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None,
+                  unchanged=unchanged)
     print(table(summary))
     return 0 if all(r["status"] in OK for r in summary["stages"].values()) else 1
