@@ -709,11 +709,12 @@ def test_tiny_pipeline_on_an_imported_bvh_dataset(tmp_path):
     # generator per way a method reads the data (ParTY's token streams, the Hierarchical-GPT's
     # H2VQ stream and TMA prior, TextIM's features and interaction texts) and the trivial baseline:
     # the others read what these read, and each stage of dvc.yaml still runs (the end-to-end test
-    # runs every method on the synthetic default)
+    # runs every method on the synthetic default). Without the ParCo-like method one body part's
+    # tokenizer stands for train_part_vqvae's six (the same command as train_vqvae's).
     from party.config import write_params
     drop = [f"~generator.methods.{m}" for m in ("holistic", "parco", "party_parts_only", "mdm")]
     write_params(work / "params.yaml", ["experiment=tiny", "dataset=bvh", f"dataset.bvh.root={mocap}",
-                                        "~dataset.synthetic", *drop], work / "conf")
+                                        "~dataset.synthetic", *drop, "vqvae.part_streams=[root]"], work / "conf")
     run_checked([str(Path(sys.executable).parent / "party"), "repro", "-j", "2"], work, env)   # stages side by side
     ran = json.loads((work / "logs/repro/summary.json").read_text())["stages"]
     in_dvc = set(yaml.safe_load((work / "dvc.yaml").read_text())["stages"])
