@@ -18,7 +18,8 @@ if [ -z "${PARTY_NO_SLURM:-}" ]; then
     echo "no local SLURM cluster: the SLURM tests will skip"
   fi
 fi
-# Two workers (pytest-xdist), whole files to a worker: the end-to-end file (one `dvc repro` fixture
-# and the tests that read it) runs on one while the rest of the suite runs on the other.
-# PARTY_TEST_WORKERS=0 runs in this process; `-n N` given here wins.
-.venv/bin/python -m pytest -n "${PARTY_TEST_WORKERS:-2}" --dist loadfile "$@"
+# Two workers (pytest-xdist), whole files to a worker, handed out in the order tests/conftest.py
+# gives (longest first; --no-loadscope-reorder keeps it): the end-to-end file (one `dvc repro`
+# fixture and the tests that read it) runs on one from the start while the rest of the suite runs
+# on the other. PARTY_TEST_WORKERS=0 runs in this process; `-n N` given here wins.
+.venv/bin/python -m pytest -n "${PARTY_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder "$@"
