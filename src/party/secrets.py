@@ -12,7 +12,8 @@ the value. What is logged goes through ``redact``:
   name a credential (``?api_key=...``, ``&token=...``, ``sig``, ``password``, ...).
 
 A literal credential typed into the config is refused by ``party params`` (``literal_credentials``):
-it would be written to the tracked ``params.yaml``.
+it would be written to the tracked ``params.yaml``; one that reached ``params.yaml`` another way
+(``dvc exp run -S``, an edit) is refused by the stage that reads it, before it starts a run.
 """
 from __future__ import annotations
 
@@ -97,8 +98,9 @@ def redact_tree(node: Any) -> Any:
 
 
 def looks_like_credential(value: str) -> str | None:
-    """Why the literal ``value`` looks like it holds a credential, or None."""
-    if _ENV_REF.search(value):
+    """Why the literal ``value`` looks like it holds a credential, or None. A value that reads the
+    environment (``${oc.env:...}``, or resolved: it holds a value ``scan`` registered) is no literal."""
+    if _ENV_REF.search(value) or any(k in value for k in _known):
         return None
     if _USERINFO.search(value):
         return "a URL with user information (user:password@)"

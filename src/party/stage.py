@@ -60,6 +60,12 @@ def stage(name: str, run_name: str | Callable | None = None,
         @functools.wraps(body)
         def run(cfg):
             cfg = validate(cfg, "params.yaml")
+            # `party params` refuses a credential typed into the config; params.yaml written otherwise
+            # (`dvc exp run -S key=value`, an edit) is refused here, before any run logs it
+            from omegaconf import OmegaConf
+
+            from party.config import refuse_literal_credentials
+            refuse_literal_credentials(OmegaConf.to_container(cfg, resolve=False), "params.yaml")
             seed_all(int(cfg.seed))
             rname = _value(run_name, cfg) or name
             t0 = time.time()

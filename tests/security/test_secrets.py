@@ -90,6 +90,19 @@ def test_a_literal_credential_is_refused_before_params_yaml_is_written(tmp_path,
     assert not (tmp_path / "params.yaml").exists()
 
 
+def test_a_stage_refuses_a_literal_credential_that_reached_params_yaml_another_way(tmp_path):
+    """`dvc exp run -S part_texts.base_url=...` (or an edit) writes params.yaml without `party params`:
+    the stage refuses it before it starts a run, naming the key; the same key from the environment runs."""
+    from party.stages import cache_part_texts
+    p = _params(tmp_path)
+    raw = yaml.safe_load(p.read_text())
+    raw["part_texts"]["base_url"] = "https://llm.example/v1?api_key=abc123"
+    p.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match=r"params\.yaml: part_texts\.base_url holds .*'api_key'"):
+        cache_part_texts.run(load_params(p))
+    assert not (tmp_path / "mlruns").exists()                 # no run was started
+
+
 def test_logged_params_and_config_mask_credentials(tmp_path, secret_env):
     from party.tracking.log import _config_yaml, flatten_config
     cfg = load_params(_params(tmp_path, URL, MODEL))
