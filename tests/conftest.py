@@ -12,8 +12,8 @@ os.environ.setdefault("PARTY_NO_RENDER", "")
 # The files that take longest, longest first (`bash scripts/test.sh --durations=80` on 2 cores): they
 # are handed out first, so that with two workers the end-to-end file runs on one from the start while
 # everything else shares the other (scripts/test.sh keeps this order: xdist's --no-loadscope-reorder).
-# Handed out in collection order instead, the end-to-end file started halfway through the suite and
-# the run ended with it alone on one core.
+# In xdist's own order (by test count) the end-to-end file started about 370 s into the run and
+# ended it alone on one core.
 LONGEST_FIRST = ("tests/test_pipeline.py", "tests/test_bvh_import.py", "tests/test_slurm.py",
                  "tests/tokenizers/test_reconstruction.py", "tests/test_slurm_preempt.py",
                  "tests/test_tracking_server.py", "tests/evaluation/test_slow.py", "tests/evaluation/test_stages.py",

@@ -45,20 +45,18 @@ SKIPPED_MARK = "didn't change, skipping"
 OK = ("ran", "unchanged", "done")       # done: finished with -j 1 (DVC's output went to the console)
 
 
-def stage_graph(root: Path = Path(".")) -> dict[str, list[str]]:
-    """stage -> the stages it depends on, as DVC's index sees ``dvc.yaml`` (foreach items by address)."""
-    from dvc.repo import Repo
-    with Repo(str(root)) as repo:
-        g = repo.index.graph
-        return {s.addressing: sorted(d.addressing for d in g.successors(s)) for s in g.nodes}
+def stage_graph(repo) -> dict[str, list[str]]:
+    """stage -> the stages it depends on, as the index of the open DVC ``repo`` sees ``dvc.yaml``
+    (foreach items by address)."""
+    g = repo.index.graph
+    return {s.addressing: sorted(d.addressing for d in g.successors(s)) for s in g.nodes}
 
 
-def changed_stages(root: Path = Path(".")) -> set[str]:
-    """The stages ``dvc status`` finds changed (a dependency, parameter, command or output differs
-    from ``dvc.lock``, or the stage is not in it), by address; DVC's own check, in this process."""
-    from dvc.repo import Repo
-    with Repo(str(root)) as repo:
-        return {str(k).rsplit(":", 1)[-1] for k in repo.status()}
+def changed_stages(repo) -> set[str]:
+    """The stages ``dvc status`` finds changed in the open DVC ``repo`` (a dependency, parameter,
+    command or output differs from ``dvc.lock``, or the stage is not in it), by address: DVC's own
+    check, in this process, on the index ``stage_graph`` read."""
+    return {str(k) for k in repo.status()}
 
 
 def select(graph: dict[str, list[str]], targets: list[str]) -> dict[str, list[str]]:
@@ -367,11 +365,13 @@ def main(argv: list[str]) -> int:
     if not Path("dvc.yaml").is_file():
         print("party repro: no dvc.yaml here; run it in the project's root", file=sys.stderr)
         return 2
-    graph = select(stage_graph(), a.targets)
-    # one `dvc status` for all: a stage it finds up to date, with every stage upstream of it too,
-    # is not started (each `dvc repro --single-item` costs seconds of DVC reading dvc.yaml,
-    # params.yaml and dvc.lock to find that out)
-    unchanged = () if a.force else set(graph) - changed_stages()
+    from dvc.repo import Repo
+    with Repo(".") as repo:               # one index for both
+        graph = select(stage_graph(repo), a.targets)
+        # one `dvc status` for all: a stage it finds up to date, with every stage upstream of it too,
+        # is not started (each `dvc repro --single-item` costs seconds of DVC reading dvc.yaml,
+        # params.yaml and dvc.lock to find that out)
+        unchanged = () if a.force else set(graph) - changed_stages(repo)
     summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None,
                   unchanged=unchanged)
     print(table(summary))
