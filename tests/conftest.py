@@ -25,6 +25,32 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda it: first.get(it.nodeid.split("::", 1)[0], len(first)))   # stable: the rest keep their order
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _fork_server(tmp_path_factory):
+    """The tests' ``party <stage>`` subprocesses fork from one warm interpreter per worker, as the
+    stages of ``party repro`` do (``party.forkserver``): each skips seconds of imports. One whose
+    environment differs from this process's in what a library reads when it loads runs in its own
+    process, as does every command with ``PARTY_TEST_OWN_PROCESS=1`` set for the whole run; a test
+    about a process of its own uses the ``own_process`` fixture."""
+    from party.forkserver import ENV, Server
+    if os.environ.get("PARTY_TEST_OWN_PROCESS") == "1" or os.environ.get(ENV):
+        yield
+        return
+    with Server(log=tmp_path_factory.mktemp("fork_server") / "log", env=dict(os.environ)) as env:
+        os.environ.update(env)
+        try:
+            yield
+        finally:
+            os.environ.pop(ENV, None)
+
+
+@pytest.fixture
+def own_process(monkeypatch):
+    """``party <stage>`` started by this test is its own process (no fork server)."""
+    from party.forkserver import ENV
+    monkeypatch.delenv(ENV, raising=False)
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""End to end: the real `dvc repro` of the whole pipeline at `experiment=tiny`'s budgets with every
+"""End to end: the real `party repro` (DVC running every stage) of the whole pipeline at `experiment=tiny`'s budgets with every
 other `conf/experiment/*.yaml` layered under it (`experiment=[<others>..., tiny]`: tiny's budgets
 win), so a new experiment file's stages and methods run through every stage, not only compose, in one
 pipeline that fits the test budget (an experiment at the default's budgets alone takes longer than
@@ -47,7 +47,9 @@ def pipeline(tmp_path_factory):
          "+generator.methods.twolevel={family: stub_twolevel}",
          "+part_texts.base_url='http://127.0.0.1:9/v1?api_key=${oc.env:PARTY_E2E_SECRET}'",
          "+part_texts.model=${oc.env:PARTY_E2E_SECRET}"], work, env)
-    repro = _sh([str(BIN / "dvc"), "repro"], work, env)
+    # `party repro` (README's command): DVC runs every stage (`dvc repro --single-item`, its output
+    # streamed here with -j 1), each forked from one warm interpreter (party.forkserver)
+    repro = _sh([str(BIN / "party"), "repro", "-j", "1"], work, env)
     return work, env, repro
 
 
@@ -61,6 +63,9 @@ def test_dvc_repro_runs_every_stage(pipeline):
                   "extract_tokens", *(f"train_evaluator@{s}" for s in streams),
                   *(f"train_generator@{m}" for m in methods), *(f"generate@{m}" for m in methods), "evaluate"):
         assert f"'{stage}'" in repro.stdout, stage
+    forked = (work / "logs/repro/fork_server.log").read_text()
+    assert "own process" not in forked                  # no stage fell back to importing for itself
+    assert forked.count(": party ") >= len(yaml.safe_load((work / "dvc.lock").read_text())["stages"])
     assert (work / "data/prepared/index.json").exists()
     assert json.loads((work / "data/part_texts/part_texts.json").read_text())
     for s in streams:

@@ -37,6 +37,7 @@ import sys
 from pathlib import Path
 
 import party.stages as stages_pkg
+from party.forkserver import ENV as FORK_ENV
 
 PROG = "party"                 # the command's name, as dvc.yaml's stages call it
 STAGE_ENV = "PARTY_STAGE"
@@ -318,6 +319,11 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2
+    if os.environ.get(FORK_ENV):          # under `party repro`: forked from its warm interpreter
+        from party.forkserver import client
+        code = client(argv)
+        if code is not None:
+            return code
     if "-h" in rest or "--help" in rest:
         print(f"party {cmd} [key=value ...] [--multirun ...]\n\n{stage_summary(cmd)[1]}\n\n"
               "Reads params.yaml (compose it with `party params`); key=value overrides any key; "

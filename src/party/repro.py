@@ -108,6 +108,14 @@ def expected_times(params: Path = Path("params.yaml")) -> dict[str, float]:
     return {str(k): float(v) for k, v in load_params(params).repro.expected_seconds.items()}
 
 
+def fork_server_wanted(params: Path = Path("params.yaml")) -> bool:
+    """``repro.fork_server`` of params.yaml (true without one)."""
+    if not params.is_file():
+        return True
+    from party.config import load_params
+    return bool(load_params(params).repro.fork_server)
+
+
 def stage_times(expected: Mapping[str, float], stages: Iterable[str]) -> dict[str, float]:
     """Each of ``stages``' expected seconds from ``expected`` (``expected_times``): the stage's own
     entry (``prepare``, ``train_vqvae@arms``), else, for an item of a ``foreach`` template
@@ -249,7 +257,8 @@ def _wait_group(pgid: int, timeout_s: float = 120.0) -> None:
 
 
 def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: str = "dvc",
-        log_dir: Path = LOG_DIR, extra: list[str] | None = None, unchanged: Iterable[str] = ()) -> dict:
+        log_dir: Path = LOG_DIR, extra: list[str] | None = None, unchanged: Iterable[str] = (),
+        fork_server: bool = False) -> dict:
     """Run every stage of ``graph`` (stage -> deps) through DVC, at most ``jobs`` at a time.
     A stage of ``unchanged`` (``dvc status`` found it up to date before the run) whose every
     upstream stage was also found unchanged is marked so without starting DVC for it (its inputs
@@ -257,7 +266,8 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     Returns {"stages": {stage: {"status", "seconds", "threads", "precision"}}, "seconds": wall}; status is
     ran, unchanged, done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped
     after a failure); ``threads`` the stage's ``OMP_NUM_THREADS``, ``precision`` what it trained or
-    encoded text in (absent where it did neither, or DVC found it unchanged)."""
+    encoded text in (absent where it did neither, or DVC found it unchanged). ``fork_server``: the
+    stages fork from one warm interpreter (``party.forkserver``; its messages: ``fork_server.log``)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     machine = machine_info()                 # before any stage runs: the commit the run started from
     previous = previous_times(log_dir)
@@ -268,9 +278,14 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     threads: dict[str, int | None] = {}
     failed = False
     t0 = time.monotonic()
+    from party.forkserver import Server
     from party.lifecycle import terminate_on_sigterm
     from party.training import STAGE_INFO_ENV
-    with terminate_on_sigterm():        # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
+    # the stages' environment but for their thread counts (set in each child)
+    server = Server(log=log_dir / "fork_server.log", env=child_env(jobs, 1)) if fork_server \
+        else contextlib.nullcontext({})
+    # SIGTERM (kill, a timeout) ends the stages as Ctrl-C does
+    with terminate_on_sigterm(), server as fork_env:
         try:
             while pending or running:
                 if not failed or keep_going:
@@ -299,7 +314,8 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                         cmd = [dvc, "--wait-for-lock", "repro", "--single-item", s, *(extra or [])]
                         # its own process group: a stop reaches the stage under DVC too (DVC ends on SIGTERM
                         # without passing it on)
-                        running[s] = (subprocess.Popen(cmd, env={**env, STAGE_INFO_ENV: str(info)}, stdout=out,
+                        running[s] = (subprocess.Popen(cmd, env={**env, **fork_env, STAGE_INFO_ENV: str(info)},
+                                                       stdout=out,
                                                        stderr=subprocess.STDOUT if out else None,
                                                        start_new_session=True),
                                       time.monotonic(), log, out)
@@ -373,6 +389,6 @@ def main(argv: list[str]) -> int:
         # params.yaml and dvc.lock to find that out)
         unchanged = () if a.force else set(graph) - changed_stages(repo)
     summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None,
-                  unchanged=unchanged)
+                  unchanged=unchanged, fork_server=fork_server_wanted())
     print(table(summary))
     return 0 if all(r["status"] in OK for r in summary["stages"].values()) else 1

@@ -921,6 +921,7 @@ class Generator:
 @dataclass
 class Repro:                                 # `party repro -j N`
     expected_seconds: Dict[str, float] = MISSING   # stage or template (train_vqvae) -> wall time, until logs/repro/summary.json has one
+    fork_server: bool = MISSING                    # stages fork from one warm interpreter (party.forkserver)
 
 
 @dataclass
