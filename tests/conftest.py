@@ -57,14 +57,16 @@ def repo_root() -> Path:
 
 
 @pytest.fixture(autouse=True)
-def _restore_mlflow_env():
-    """mlflow.set_tracking_uri exports $MLFLOW_TRACKING_URI; keep one test's store out of the next."""
-    before = os.environ.get("MLFLOW_TRACKING_URI")
+def _restore_environment():
+    """Each test starts from the environment the one before it started from: what a test, or what
+    it called in-process, exported (mlflow.set_tracking_uri's $MLFLOW_TRACKING_URI, Lightning's
+    seed_everything's PL_GLOBAL_SEED, the encoders' HF_HUB_OFFLINE) reaches no later test, and the
+    tests' `party` commands keep the environment the fork server started with."""
+    before = dict(os.environ)
     yield
-    if before is None:
-        os.environ.pop("MLFLOW_TRACKING_URI", None)
-    else:
-        os.environ["MLFLOW_TRACKING_URI"] = before
+    if dict(os.environ) != before:
+        os.environ.clear()
+        os.environ.update(before)
 
 
 @pytest.fixture(autouse=True)

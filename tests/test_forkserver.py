@@ -112,6 +112,18 @@ def test_no_server_runs_the_stage_in_its_own_process(tmp_path):
     assert p.communicate(timeout=60)[0].strip() == "ran itself" and p.returncode == 99
 
 
+def test_a_server_gone_before_it_forked_leaves_the_stage_to_the_client(tmp_path):
+    """A client that connected while the server still imported, when the server then dies: the
+    stage never started, so the command runs it itself."""
+    srv = forkserver.Server(log=tmp_path / "log", preload=("torch",), entry="fork_entry:main", env=BASE)
+    with srv as env:
+        p = client(env, "exit", "0")
+        time.sleep(0.5)
+        srv.proc.kill()
+        out, _ = p.communicate(timeout=60)
+    assert p.returncode == 99 and "ran itself" in out
+
+
 def test_the_child_takes_the_clients_thread_count(tmp_path):
     """``party repro`` gives each stage ``OMP_NUM_THREADS`` by how many run beside it; the server
     loaded torch without it."""

@@ -276,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
+    command = argv is None                # the `party` command itself (not a call from Python)
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)
@@ -319,16 +320,16 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd not in available_stages():
         print(f"party: unknown command {cmd!r}; stages: {', '.join(available_stages())}", file=sys.stderr)
         return 2
-    if os.environ.get(FORK_ENV):          # under `party repro`: forked from its warm interpreter
-        from party.forkserver import client
-        code = client(argv)
-        if code is not None:
-            return code
     if "-h" in rest or "--help" in rest:
         print(f"party {cmd} [key=value ...] [--multirun ...]\n\n{stage_summary(cmd)[1]}\n\n"
               "Reads params.yaml (compose it with `party params`); key=value overrides any key; "
               "Hydra's own help: --hydra-help; the composed config: --cfg job.")
         return 0
+    if command and os.environ.get(FORK_ENV):    # under `party repro`: forked from its warm interpreter
+        from party.forkserver import client
+        code = client(argv)
+        if code is not None:
+            return code
     run_stage(cmd, rest)
     return 0
 

@@ -87,14 +87,18 @@ def client(argv: list[str]) -> int | None:
         return None
     for sig in FORWARDED:
         signal.signal(sig, lambda n, _f: _send(s, f"sig {n}\n"))
+    started, word = False, ""
     for word, arg in _words(s):
-        if word == "fallback":
-            s.close()
-            for sig in FORWARDED:
-                signal.signal(sig, signal.SIG_DFL if sig != signal.SIGINT else signal.default_int_handler)
-            return None
+        started = started or word == "started"
         if word == "exit":
             return int(arg)
+        if word == "fallback":
+            break
+    if word == "fallback" or not started:    # refused, or the server ended before forking: nothing ran
+        s.close()
+        for sig in FORWARDED:
+            signal.signal(sig, signal.SIG_DFL if sig != signal.SIGINT else signal.default_int_handler)
+        return None
     print(f"party: the fork server ({path}) went away before the stage's exit status came", file=sys.stderr)
     return 1
 
@@ -332,6 +336,7 @@ def _run_child(conn: socket.socket, fds: list[int], req: dict, entry: str) -> in
     threads = os.environ.get("OMP_NUM_THREADS") or os.environ.get("MKL_NUM_THREADS")
     if threads and threads.isdigit() and int(threads) > 0 and "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(int(threads))
+    _send(conn, "started\n")         # from here on the stage runs here, or not at all
     threading.Thread(target=_watch, args=(conn,), daemon=True, name="party-fork-client").start()
     module, _, function = entry.partition(":")
     rc = getattr(importlib.import_module(module), function)(sys.argv[1:])

@@ -182,3 +182,20 @@ def test_clip_loads_a_torchscript_archive_like_openais(tmp_path):
     del full, traced
     enc = build_text_encoder(_clip_cfg(weights=str(path)))
     assert torch.allclose(enc.encode(texts), ref, atol=1e-5)
+
+
+def test_offline_mode_holds_when_huggingface_hub_was_loaded_first(monkeypatch):
+    """huggingface_hub reads HF_HUB_OFFLINE once, when it loads; Lightning (torchmetrics) and the fork
+    server of party repro load it before any encoder: the encoder still turns downloads off."""
+    import huggingface_hub.constants as hub
+
+    from party.text.encoders import no_downloads
+    for k in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setattr(hub, "HF_HUB_OFFLINE", False)
+    no_downloads()
+    assert hub.HF_HUB_OFFLINE and hub.is_offline_mode()
+    monkeypatch.setenv("HF_HUB_OFFLINE", "0")            # a user's explicit choice stands
+    monkeypatch.delenv("TRANSFORMERS_OFFLINE")
+    no_downloads()
+    assert not hub.HF_HUB_OFFLINE

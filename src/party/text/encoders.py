@@ -43,6 +43,19 @@ import torch.nn.functional as F
 NO_DOWNLOAD_ENV = {"HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
 
 
+def no_downloads() -> None:
+    """Hugging Face's offline mode, unless the environment already says otherwise.
+    ``huggingface_hub`` reads it once, when it loads, and Lightning (torchmetrics) or the fork
+    server of ``party repro`` may have loaded it already: its constant is set too."""
+    import sys
+    for k, v in NO_DOWNLOAD_ENV.items():
+        os.environ.setdefault(k, v)
+    hub = sys.modules.get("huggingface_hub.constants")
+    if hub is not None:
+        flag = os.environ.get("HF_HUB_OFFLINE") or os.environ.get("TRANSFORMERS_OFFLINE") or ""
+        hub.HF_HUB_OFFLINE = flag.upper() in ("1", "ON", "YES", "TRUE")
+
+
 def resolve_device(name: str | None) -> torch.device:
     if name in (None, "auto"):
         if torch.cuda.is_available():
@@ -203,8 +216,7 @@ class MiniLMEncoder(TextEncoder):
     Normalize module (so cosine similarity = dot product)."""
 
     def __init__(self, cfg):
-        for k, v in NO_DOWNLOAD_ENV.items():
-            os.environ.setdefault(k, v)
+        no_downloads()
         from sentence_transformers import SentenceTransformer
 
         model_dir = _minilm_dir(cfg)
