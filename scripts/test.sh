@@ -22,4 +22,4 @@ fi
 # gives (longest first; --no-loadscope-reorder keeps it): the end-to-end file (one `dvc repro`
 # fixture and the tests that read it) runs on one from the start while the rest of the suite runs
 # on the other. PARTY_TEST_WORKERS=0 runs in this process; `-n N` given here wins.
-.venv/bin/python -m pytest -n "${PARTY_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder "$@"
+.venv/bin/python -m pytest -n "${PARTY_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder --durations=25 "$@"

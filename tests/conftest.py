@@ -30,8 +30,8 @@ def _fork_server(tmp_path_factory):
     """The tests' ``party <stage>`` subprocesses fork from one warm interpreter per worker, as the
     stages of ``party repro`` do (``party.forkserver``): each skips seconds of imports. One whose
     environment differs from this process's in what a library reads when it loads runs in its own
-    process, as does every command with ``PARTY_TEST_OWN_PROCESS=1`` set for the whole run; a test
-    about a process of its own uses the ``own_process`` fixture."""
+    process (a command inside a SLURM job, one with its own PYTHONPATH), as does every command with
+    ``PARTY_TEST_OWN_PROCESS=1`` set for the whole run."""
     from party.forkserver import ENV, Server
     if os.environ.get("PARTY_TEST_OWN_PROCESS") == "1" or os.environ.get(ENV):
         yield
@@ -42,13 +42,6 @@ def _fork_server(tmp_path_factory):
             yield
         finally:
             os.environ.pop(ENV, None)
-
-
-@pytest.fixture
-def own_process(monkeypatch):
-    """``party <stage>`` started by this test is its own process (no fork server)."""
-    from party.forkserver import ENV
-    monkeypatch.delenv(ENV, raising=False)
 
 
 @pytest.fixture(scope="session")

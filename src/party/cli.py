@@ -313,6 +313,11 @@ def _main(argv: list[str] | None = None) -> int:
     if cmd == "convert-checkpoint":
         from party.checkpoints import main as convert_main
         return convert_main(rest)
+    if command and os.environ.get(FORK_ENV) and cmd in available_stages():
+        from party.forkserver import client         # under `party repro`: forked from its warm interpreter
+        code = client(argv)
+        if code is not None:
+            return code
     if cmd == "generate":
         from party.stages.generate import is_plain, plain
         if is_plain(rest):
@@ -325,11 +330,6 @@ def _main(argv: list[str] | None = None) -> int:
               "Reads params.yaml (compose it with `party params`); key=value overrides any key; "
               "Hydra's own help: --hydra-help; the composed config: --cfg job.")
         return 0
-    if command and os.environ.get(FORK_ENV):    # under `party repro`: forked from its warm interpreter
-        from party.forkserver import client
-        code = client(argv)
-        if code is not None:
-            return code
     run_stage(cmd, rest)
     return 0
 

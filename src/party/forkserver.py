@@ -359,6 +359,9 @@ class Server:
     def __enter__(self) -> dict[str, str]:
         import subprocess
         import tempfile
+        if not hasattr(os, "fork") or not hasattr(socket, "send_fds"):     # Windows: stages start as they are
+            self.dir = None
+            return {}
         self.dir = tempfile.mkdtemp(prefix="party-fork-")          # 0700
         path = os.path.join(self.dir, "socket")
         out = open(self.log, "a") if self.log else subprocess.DEVNULL
@@ -389,4 +392,5 @@ class Server:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        shutil.rmtree(self.dir, ignore_errors=True)
+        if self.dir:
+            shutil.rmtree(self.dir, ignore_errors=True)

@@ -263,7 +263,8 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     A stage of ``unchanged`` (``dvc status`` found it up to date before the run) whose every
     upstream stage was also found unchanged is marked so without starting DVC for it (its inputs
     cannot have changed since); any other stage is left to DVC, which skips it if nothing changed.
-    Returns {"stages": {stage: {"status", "seconds", "threads", "precision"}}, "seconds": wall}; status is
+    Returns {"stages": {stage: {"status", "seconds", "threads", "precision"}}, "seconds": wall,
+    "fork_server": whether the stages forked from one}; status is
     ran, unchanged, done (-j 1), failed, or blocked (a stage it depends on failed) / not started (stopped
     after a failure); ``threads`` the stage's ``OMP_NUM_THREADS``, ``precision`` what it trained or
     encoded text in (absent where it did neither, or DVC found it unchanged). ``fork_server``: the
@@ -356,7 +357,7 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                 p.wait()
                 _wait_group(p.pid)
             raise
-    summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1),
+    summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1), "fork_server": bool(fork_env),
                "stages": {s: result[s] for s in graph if s in result}, "machine": machine}
     (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
