@@ -354,13 +354,12 @@ class Server:
     def __init__(self, log=None, preload: tuple[str, ...] = PRELOAD, entry: str = ENTRY,
                  env: dict[str, str] | None = None):
         self.log, self.preload, self.entry, self.env = log, preload, entry, env
-        self.proc = None
+        self.proc, self.dir = None, None
 
     def __enter__(self) -> dict[str, str]:
         import subprocess
         import tempfile
         if not hasattr(os, "fork") or not hasattr(socket, "send_fds"):     # Windows: stages start as they are
-            self.dir = None
             return {}
         self.dir = tempfile.mkdtemp(prefix="party-fork-")          # 0700
         path = os.path.join(self.dir, "socket")
