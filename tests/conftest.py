@@ -7,6 +7,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 os.environ.setdefault("PARTY_NO_RENDER", "")
+# pytest-xdist's workers share the cores: each worker's torch (in-process training) and every stage
+# it starts (party repro keeps an OMP_NUM_THREADS it is given) use the worker's share, not every
+# core. Set before anything imports torch. Two workers each on two threads of a 2-core machine
+# oversubscribe it: OpenMP threads wait for a preempted partner, and a tokenizer fixture that
+# trains in 18 s alone took 193-258 s beside the end-to-end pipeline.
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _WORKERS)))
 
 
 # The files that take longest, longest first (`bash scripts/test.sh --durations=80` on 2 cores): they
