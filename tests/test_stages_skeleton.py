@@ -150,3 +150,45 @@ def test_multirun_sweeper_receives_the_stage_metric(tmp_path):
     got = {r["objective"]: r["value"] for r in map(json.loads, out.read_text().splitlines())}
     assert got["n_rejected"] == 0.0
     assert got[None]["counts"]["train"]["clips"] > 0 and got[None]["n_rejected"] == 0
+
+
+def _compositions(tmp_path, monkeypatch, argv: list[str], one: bool) -> tuple[int, list]:
+    """How many times Hydra composes ``argv``'s app (a one-key config), and what the app saw."""
+    import hydra
+    from hydra._internal.hydra import Hydra
+
+    from party.cli import _one_composition
+    (tmp_path / "c.yaml").write_text("a: 1\n")
+    calls, seen = [], []
+    real = Hydra.compose_config
+    monkeypatch.setattr(Hydra, "compose_config", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+
+    @hydra.main(version_base=None, config_path=str(tmp_path), config_name="c")
+    def app(cfg):
+        from hydra.core.hydra_config import HydraConfig
+        seen.append((cfg.a, str(HydraConfig.get().mode)))
+
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    monkeypatch.setattr(sys, "argv", ["app", *[a for a in argv if a not in overrides],      # flags first
+                                      f"hydra.run.dir={tmp_path / 'out'}", f"hydra.sweep.dir={tmp_path / 'multi'}",
+                                      *overrides])
+    if one:
+        with _one_composition(overrides):
+            app()
+    else:
+        app()
+    return len(calls), seen
+
+
+def test_a_stage_composes_its_config_once_unless_an_override_may_set_the_mode(tmp_path, monkeypatch):
+    """Hydra composes an app's config a first time only to read ``hydra.mode``; party's stages skip
+    that (``party.cli._one_composition``) unless an override could set it. Same runs either way."""
+    from hydra._internal.hydra import Hydra
+    get_mode = Hydra.get_mode
+    assert _compositions(tmp_path, monkeypatch, ["a=2"], one=False) == (2, [(2, "RunMode.RUN")])
+    assert _compositions(tmp_path, monkeypatch, ["a=2"], one=True) == (1, [(2, "RunMode.RUN")])
+    multi = [(2, "RunMode.MULTIRUN"), (3, "RunMode.MULTIRUN")]
+    assert _compositions(tmp_path, monkeypatch, ["--multirun", "a=2,3"], one=True) == (1, multi)
+    # the mode set by an override: read first, as Hydra does
+    assert _compositions(tmp_path, monkeypatch, ["hydra.mode=MULTIRUN", "a=2,3"], one=True) == (2, multi)
+    assert Hydra.get_mode is get_mode                                               # restored

@@ -30,6 +30,7 @@ refused (``party.overrides``).
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import pkgutil
@@ -167,7 +168,32 @@ def run_stage(stage: str, argv: list[str]):
     # argv[0]: the script DDP child processes re-run (party/launch/party_stage.py)
     os.environ[STAGE_ENV] = stage
     sys.argv = [str(LAUNCHER), *flags, *defaults, *overrides]
-    return app()
+    with _one_composition(overrides):
+        return app()
+
+
+@contextlib.contextmanager
+def _one_composition(overrides: list[str]):
+    """Hydra composes the config twice per app: once only to read ``hydra.mode`` (``get_mode``),
+    then to run (0.3-0.5 s each for params.yaml). ``hydra.mode`` is unset unless an override sets
+    it (``hydra.mode=...``) or picks a ``hydra/`` config group that might; otherwise the first
+    composition can only answer None, which is what this says without composing (Hydra then
+    decides by ``--multirun``, as it does for None)."""
+    try:
+        from hydra._internal.hydra import Hydra
+    except ImportError:                 # another Hydra: compose as it does
+        yield
+        return
+    keys = [o.split("=", 1)[0].lstrip("+~") for o in overrides]
+    if any(k.startswith(("hydra.mode", "hydra/")) for k in keys) or not hasattr(Hydra, "get_mode"):
+        yield
+        return
+    original = Hydra.get_mode
+    Hydra.get_mode = lambda self, config_name, overrides: None
+    try:
+        yield
+    finally:
+        Hydra.get_mode = original
 
 
 PARAMS_HELP = """party params [group=choice | key=value | ~key ...] [--reset] [--check]
