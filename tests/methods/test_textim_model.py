@@ -145,6 +145,31 @@ def test_denoiser_padding_and_token_fusion():
         assert not torch.allclose(den(x2, t, conds, None)[valid], out[valid], atol=1e-3)
 
 
+def test_denoiser_in_eval_equals_torchs_fast_path_and_leaves_the_switch_as_it_was():
+    """The denoiser's encoder runs without torch's eval fast path (``no_mha_fastpath``: its masked
+    softmax is slow on CPU); the outputs are the fast path's, and the global switch is restored."""
+    import contextlib
+
+    import party.methods.textim.denoiser as dn
+    torch.manual_seed(0)
+    x, lengths, t = torch.randn(3, 10, D), torch.tensor([10, 6, 3]), torch.tensor([3, 7, 0])
+    conds = {"caption": torch.randn(3, TEXT), "mask": torch.rand(3, D)}
+    den = Denoiser(tiny_denoiser(), {"caption": TEXT, "mask": D}, {"caption"}, T_DIFF).eval()
+    with torch.inference_mode():
+        ours = den(x, t, conds, lengths)
+        assert torch.backends.mha.get_fastpath_enabled()
+        real, dn.no_mha_fastpath = dn.no_mha_fastpath, contextlib.nullcontext
+        try:
+            fast = den(x, t, conds, lengths)
+        finally:
+            dn.no_mha_fastpath = real
+    valid = valid_frames(lengths, 10, x.device)
+    assert torch.allclose(ours[valid], fast[valid], atol=1e-5)
+    with dn.no_mha_fastpath():
+        assert not torch.backends.mha.get_fastpath_enabled()
+    assert torch.backends.mha.get_fastpath_enabled()
+
+
 def test_cfg_scale_one_is_the_conditional_pass_and_null_drops_exactly_the_texts():
     model = build()
     assert model.module1.droppable == {"caption", "inter"} and model.module2.droppable == {"caption", "non"}

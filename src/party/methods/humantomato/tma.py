@@ -29,6 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from party.generator.layers import no_mha_fastpath
+
 
 @dataclass
 class TMAConfig:
@@ -74,7 +76,8 @@ class ActorEncoder(nn.Module):
             raise ValueError(f"TMA encoder: {L} positions, more than tma.max_len = {len(self.pe) - 2}")
         h = torch.cat([self.tokens[None].expand(B, -1, -1), self.proj(x)], 1) + self.pe[: L + 2]
         keep = torch.cat([mask.new_ones(B, 2), mask], 1)
-        out = self.net(h, src_key_padding_mask=~keep)
+        with no_mha_fastpath():                    # torch's eval fast path: a slow masked softmax on CPU
+            out = self.net(h, src_key_padding_mask=~keep)
         mu = out[:, 0]
         logvar = out[:, 1] if self.vae else torch.zeros_like(mu)
         return mu, logvar

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from party.generator.layers import no_mha_fastpath
+
 FUSIONS = ("sum", "tokens")
 
 
@@ -156,5 +158,6 @@ class Denoiser(nn.Module):
         if lengths is not None:
             pad = torch.arange(n, device=x.device)[None] >= lengths.to(x.device)[:, None]
             kpm = torch.cat([torch.zeros(b, p, dtype=torch.bool, device=x.device), pad], dim=1)
-        out = self.encoder(seq, src_key_padding_mask=kpm)
+        with no_mha_fastpath():
+            out = self.encoder(seq, src_key_padding_mask=kpm)
         return self.output_proj(out[:, p:])
