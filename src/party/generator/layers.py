@@ -39,7 +39,8 @@ def no_mha_fastpath() -> Iterator[None]:
     masked softmax that is slow on CPU: 47 ms of a 120 ms layer at batch 32 x 2 (guidance) x 197
     positions, 4 heads, d = 128 (AMD EPYC, 2 threads, fp32). The regular path calls
     ``scaled_dot_product_attention`` (the fused CPU kernel, mask included): TextIM's 20-step DDIM
-    sampling at batch 32 ran 1.7-1.9x faster, the same samples to 5e-6 (``bench/bench_diffusion.py``).
+    sampling at batch 32 ran 1.62-1.64x faster (1.57-1.75x under the AVX2 emulation), the same
+    samples to 5e-6 (``docs/performance.md``).
     Training never takes the fast path, so nothing changes there."""
     before = torch.backends.mha.get_fastpath_enabled()
     torch.backends.mha.set_fastpath_enabled(False)
