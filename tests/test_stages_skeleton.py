@@ -157,7 +157,7 @@ def _compositions(tmp_path, monkeypatch, argv: list[str], one: bool) -> tuple[in
     import hydra
     from hydra._internal.hydra import Hydra
 
-    from party.cli import _one_composition
+    from party.cli import _one_composition, override_keys
     (tmp_path / "c.yaml").write_text("a: 1\n")
     calls, seen = [], []
     real = Hydra.compose_config
@@ -173,7 +173,7 @@ def _compositions(tmp_path, monkeypatch, argv: list[str], one: bool) -> tuple[in
                                       f"hydra.run.dir={tmp_path / 'out'}", f"hydra.sweep.dir={tmp_path / 'multi'}",
                                       *overrides])
     if one:
-        with _one_composition(overrides):
+        with _one_composition(override_keys(overrides)):
             app()
     else:
         app()

@@ -142,10 +142,10 @@ def run_stage(stage: str, argv: list[str]):
     params = params_path()
     if not params.exists():
         sys.exit(f"party: {params} not found; run `party params` first (or set $PARTY_PARAMS)")
-    values = [a for a in argv if "=" in a and not a.startswith("-")]
-    refuse_group_choice(stage, values)
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    refuse_group_choice(stage, overrides)
     try:
-        check_overrides([v for v in values if not v.startswith("hydra")], stage)
+        check_overrides([v for v in overrides if not v.startswith("hydra")], stage)
     except DivergingOverride as e:
         sys.exit(str(e))
 
@@ -161,30 +161,33 @@ def run_stage(stage: str, argv: list[str]):
                 # pipeline itself are chosen when composing params.yaml (`party params`).
                 f"hydra.searchpath=[file://{Path.cwd() / 'conf'}]"]
     # Hydra's argparse wants flags before the overrides; a user override wins over a default
-    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
     flags = [a for a in argv if a not in overrides]
-    given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    given = override_keys(overrides)
     defaults = [d for d in defaults if d.split("=", 1)[0] not in given]
     # argv[0]: the script DDP child processes re-run (party/launch/party_stage.py)
     os.environ[STAGE_ENV] = stage
     sys.argv = [str(LAUNCHER), *flags, *defaults, *overrides]
-    with _one_composition(overrides):
+    with _one_composition(given):
         return app()
 
 
+def override_keys(overrides: list[str]) -> set[str]:
+    """The keys (or config groups) ``key=value`` overrides set, without Hydra's ``+``/``~``/``++``."""
+    return {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+
+
 @contextlib.contextmanager
-def _one_composition(overrides: list[str]):
+def _one_composition(keys: set[str]):
     """Hydra composes the config twice per app: once only to read ``hydra.mode`` (``get_mode``),
     then to run (0.3-0.5 s each for params.yaml). ``hydra.mode`` is unset unless an override sets
-    it (``hydra.mode=...``) or picks a ``hydra/`` config group that might; otherwise the first
-    composition can only answer None, which is what this says without composing (Hydra then
-    decides by ``--multirun``, as it does for None)."""
+    it (``keys``: the overrides' keys, ``hydra.mode``) or picks a ``hydra/`` config group that
+    might; otherwise the first composition can only answer None, which is what this says without
+    composing (Hydra then decides by ``--multirun``, as it does for None)."""
     try:
         from hydra._internal.hydra import Hydra
     except ImportError:                 # another Hydra: compose as it does
         yield
         return
-    keys = [o.split("=", 1)[0].lstrip("+~") for o in overrides]
     if any(k.startswith(("hydra.mode", "hydra/")) for k in keys) or not hasattr(Hydra, "get_mode"):
         yield
         return
