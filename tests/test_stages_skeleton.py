@@ -192,3 +192,47 @@ def test_a_stage_composes_its_config_once_unless_an_override_may_set_the_mode(tm
     # the mode set by an override: read first, as Hydra does
     assert _compositions(tmp_path, monkeypatch, ["hydra.mode=MULTIRUN", "a=2,3"], one=True) == (2, multi)
     assert Hydra.get_mode is get_mode                                               # restored
+
+
+def test_which_errors_a_stage_reports_in_one_line(tmp_path):
+    """``party.cli.said``: a ``raise`` of the party package itself (the checks that name a file and
+    what to run) or an ``OSError`` is its message alone; a bug in party's code (a ``KeyError`` from
+    a lookup) or a library's error keeps its traceback."""
+    from party.cli import error_line, said
+    from party.io import require
+
+    def caught(fn):
+        try:
+            fn()
+        except Exception as e:                       # noqa: BLE001 - the error is what is tested
+            return e
+        raise AssertionError("no error")
+
+    missing = caught(lambda: require(tmp_path / "none.json", "party prepare", "index"))
+    assert said(missing) and error_line(missing).startswith(f"{tmp_path / 'none.json'}: index not found")
+    oserr = caught(lambda: open(tmp_path / "absent.txt"))
+    assert said(oserr) and error_line(oserr).startswith("FileNotFoundError: [Errno 2]")
+    from party.cli import override_keys
+    assert not said(caught(lambda: override_keys([1])))          # a bug in party's code: not a raise
+    import torch
+    assert not said(caught(lambda: torch.zeros(2) @ torch.zeros(3)))            # a library's error
+
+
+def test_a_stage_error_is_one_line_unless_the_full_error_is_asked(tmp_path):
+    """``party <stage>`` on an input that is not there: the message (the file, what to run), exit 1,
+    no traceback; ``HYDRA_FULL_ERROR=1`` brings Hydra's full traceback back."""
+    params = _params(tmp_path)
+    env = {**os.environ, "PARTY_PARAMS": str(params), "PARTY_FORK_SERVER": "0"}
+    env.pop("HYDRA_FULL_ERROR", None)
+
+    def party(**extra):
+        return subprocess.run([sys.executable, "-m", "party.cli", "cache_part_texts"], cwd=tmp_path,
+                              env={**env, **extra}, capture_output=True, text=True, timeout=300)
+
+    short = party()
+    assert short.returncode == 1, short.stderr[-2000:]
+    assert "Traceback" not in short.stderr and "Error executing job" not in short.stderr, short.stderr[-2000:]
+    assert short.stderr.strip().splitlines()[-1] == (f"party cache_part_texts: {tmp_path / 'prepared' / 'index.json'}: "
+                                                     "prepared index not found; run `party prepare`"), short.stderr[-2000:]
+    full = party(HYDRA_FULL_ERROR="1")
+    assert full.returncode == 1 and "Traceback" in full.stderr and "party/io.py" in full.stderr

@@ -151,7 +151,12 @@ def run_stage(stage: str, argv: list[str]):
 
     @hydra.main(version_base=None, config_path=str(_params_dir(params)), config_name=params.stem)
     def app(cfg):
-        metrics = mod.run(cfg)
+        try:
+            metrics = mod.run(cfg)
+        except Exception as e:
+            if not (said(e) and _single_run()) or os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise                   # Hydra prints the traceback (HYDRA_FULL_ERROR=1: all of it)
+            sys.exit(f"party {stage}: {error_line(e)}")
         return objective_value(metrics, str(cfg.objective)) if cfg.objective else metrics
 
     defaults = [f"hydra.run.dir=outputs/{stage}/${{now:%Y-%m-%d_%H-%M-%S}}",
@@ -169,6 +174,44 @@ def run_stage(stage: str, argv: list[str]):
     sys.argv = [str(LAUNCHER), *flags, *defaults, *overrides]
     with _one_composition(given):
         return app()
+
+
+PACKAGE = Path(__file__).resolve().parent
+
+
+def said(e: BaseException) -> bool:
+    """Whether an error's message is the whole story: a ``raise`` statement of the party package
+    itself raised it (the checks that name a file and what to run), or it is an ``OSError`` (a
+    file, a socket, the disk). Anything else (a bug, a library's error) keeps its traceback."""
+    import linecache
+    if isinstance(e, OSError):
+        return True
+    tb = e.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    path = Path(tb.tb_frame.f_code.co_filename)
+    if not path.is_absolute() or not path.resolve().is_relative_to(PACKAGE):
+        return False
+    return linecache.getline(str(path), tb.tb_lineno).lstrip().startswith("raise ")
+
+
+def error_line(e: BaseException) -> str:
+    """One line for ``said`` errors: the message; the type first where the message alone would
+    not say what failed (an ``OSError``'s own ``[Errno N] ...``)."""
+    msg = str(e) or type(e).__name__
+    return msg if not isinstance(e, OSError) or not msg.startswith("[Errno") else f"{type(e).__name__}: {msg}"
+
+
+def _single_run() -> bool:
+    """A plain run (not a ``--multirun`` job, whose launcher reports a job's error its own way)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+        return HydraConfig.get().mode == RunMode.RUN
+    except Exception:
+        return False
 
 
 def override_keys(overrides: list[str]) -> set[str]:
