@@ -241,3 +241,23 @@ def test_the_committed_readme_headline_is_what_the_snapshot_renders():
     assert results.HEADLINE[0] in readme, "README.md lost its headline markers"
     assert results.with_headline(readme, results.load(snap)) == readme, (
         "README.md's headline table differs from docs/results.json: run `party results --render-only`")
+
+
+def test_a_rerun_without_a_grid_keeps_the_earlier_grid_marked_with_its_commit(tmp_path):
+    """A grid takes hours: `party results` after a fresh run of the default keeps the earlier
+    snapshot's grids that this project did not run, each marked kept with the commit it was read
+    with; `--drop-grids` leaves only this project's."""
+    summary = {"jobs": 2, "seconds": 300.0, "stages": STAGES, "machine": MACHINE}
+    page = page_of(project(tmp_path, evaluation(alpha_fid=10.0, beta_fid=20.0), summary))
+    assert f"(points: 1 done; commit `{SHA[:7]}`)" in page
+    shutil.rmtree(tmp_path / "data" / "ablations")
+    later = {**summary, "machine": {**MACHINE, "commit": "f" * 40}}
+    page = page_of(project(tmp_path, evaluation(alpha_fid=10.0, beta_fid=20.0), later, grid=False))
+    assert "| no_pg | 12.345 |" in page
+    assert f"(points: 1 done; kept from an earlier run, commit `{SHA[:7]}`, not rerun for this page)" in page
+    snap = results.load(tmp_path / "docs" / "results.json")
+    assert snap["commit"]["sha"] == "f" * 40 and [g["name"] for g in snap["grids"]] == ["gen_tab5"]
+    assert snap["grids"][0]["kept"] and "data/ablations/gen_tab5/table.md" in snap["inputs"]
+    assert cli.main(["results", "--root", str(tmp_path), "--drop-grids"]) == 0
+    assert "gen_tab5" not in (tmp_path / "docs" / "results.md").read_text()
+    assert results.load(tmp_path / "docs" / "results.json")["grids"] == []

@@ -21,7 +21,9 @@ Every claim the page makes in prose is computed from the snapshot's numbers (``c
 table and metric, the generated method that is best and whether its lead is beyond the 95% CIs
 of the second (the two intervals do not overlap).
 
-    party results [--root DIR] [--out DIR]   gather into <out>/results.json, render <out>/results.md
+    party results [--root DIR] [--out DIR]   gather into <out>/results.json, render <out>/results.md;
+                                             grids of the earlier snapshot that DIR did not run stay,
+                                             marked kept with their commit (--drop-grids: they go)
     party results --render-only              render <out>/results.md from <out>/results.json
     party results --check                    exit 1 if <out>/results.md is not render(<out>/results.json)
 """
@@ -175,6 +177,8 @@ def gather(root: Path = Path(".")) -> dict:
         whole, parts = evaluators[0], evaluators[1:]
     read = [mfile, tfile, *(metrics_dir / f"{s}.json" for s in means)] + ([sfile] if summary else [])
     grids = grid_tables(root, params)
+    for g in grids:
+        g["commit"] = (commit or {}).get("sha")
     return {
         "schema": SCHEMA,
         "commit": commit,
@@ -405,7 +409,11 @@ def render_grids(grids: Sequence[Mapping]) -> list[str]:
         return out + ["No sweep ran (no `table.md` under the ablation folders).", ""]
     for g in grids:
         pts = ", ".join(f"{n} {k}" for k, n in sorted((g.get("points") or {}).items()))
-        out += [f"From `{g['path']}`" + (f" (points: {pts})" if pts else "") + ":", "",
+        sha = str(g.get("commit") or "")[:7]
+        notes = ([f"points: {pts}"] if pts else []) + (
+            [f"kept from an earlier run, commit `{sha or '?'}`, not rerun for this page"] if g.get("kept")
+            else [f"commit `{sha}`"] if sha else [])
+        out += [f"From `{g['path']}`" + (f" ({'; '.join(notes)})" if notes else "") + ":", "",
                 _demote(g.get("table_md", ""), 2), ""]
         if g.get("seeds") and g.get("rows"):
             sd = g["seeds"]
@@ -495,13 +503,37 @@ def dump(snapshot: Mapping) -> str:
     return json.dumps(snapshot, indent=1, ensure_ascii=False) + "\n"
 
 
-def write(root: Path = Path("."), out: Path = Path("docs")) -> tuple[Path, Path]:
+def keep_grids(new: dict, old: Mapping | None) -> dict:
+    """``new`` with every grid of the earlier snapshot ``old`` that ``new``'s project did not run
+    (a sweep takes hours; a fresh run of the default should not drop its table), marked ``kept``:
+    each keeps the commit of the run it was read from (``commit``; an entry older than that field
+    gets the earlier snapshot's commit, the last run it was gathered with), which the page prints."""
+    if not old:
+        return new
+    have = {g["name"] for g in new.get("grids") or []}
+    kept = []
+    for g in old.get("grids") or []:
+        if g.get("name") in have:
+            continue
+        g = dict(g)
+        g.setdefault("commit", ((old.get("commit") or {}).get("sha")))
+        g["kept"] = True
+        kept.append(g)
+    out = dict(new)
+    out["grids"] = [*(new.get("grids") or []), *kept]
+    out["inputs"] = [*(new.get("inputs") or []), *(g["path"] for g in kept if g["path"] not in new.get("inputs", []))]
+    return out
+
+
+def write(root: Path = Path("."), out: Path = Path("docs"), keep: bool = True) -> tuple[Path, Path]:
     """Gather ``root``'s outputs into ``out/results.json`` and render ``out/results.md`` from it
-    (as read back, so the page is exactly ``render(load(results.json))``)."""
+    (as read back, so the page is exactly ``render(load(results.json))``). ``keep``: the grids of
+    the snapshot already there that ``root`` did not run stay on the page (``keep_grids``)."""
     from party.io import write_text
     out = Path(out)
     snap = out / SNAPSHOT
-    write_text(snap, dump(gather(root)))
+    earlier = load(snap) if keep and snap.is_file() else None
+    write_text(snap, dump(keep_grids(gather(root), earlier)))
     write_text(out / PAGE, render(load(snap)))
     readme = Path(root) / "README.md"
     if readme.is_file():
@@ -519,6 +551,8 @@ def main(argv: list[str]) -> int:
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--render-only", action="store_true", help="render results.md from the existing results.json")
     mode.add_argument("--check", action="store_true", help="exit 1 if results.md is not what results.json renders")
+    ap.add_argument("--drop-grids", action="store_true",
+                    help="only the grids this project ran (default: the snapshot's other grids stay, marked kept)")
     a = ap.parse_args(argv)
     out = a.out if a.out is not None else a.root / "docs"
     if a.render_only or a.check:
@@ -548,6 +582,6 @@ def main(argv: list[str]) -> int:
             write_text(readme, readme_new)
         print(f"wrote {out / PAGE}")
         return 0
-    snap, page = write(a.root, out)
+    snap, page = write(a.root, out, keep=not a.drop_grids)
     print(f"wrote {snap} and {page}")
     return 0
