@@ -269,8 +269,8 @@ def cmd_params(argv: list[str]) -> int:
                 return 1
             print("params.yaml matches conf/" + _choices_note(choices_as_overrides()))
             return 0
-        if not reset:          # a bad value fails here, before conf/local/ changes (others compose it)
-            compose([o for o in overrides if not o.startswith("~")])
+        if overrides and not reset:   # a bad value fails here, before conf/local/ changes (others compose it);
+            compose([o for o in overrides if not o.startswith("~")])   # with none, write_params is the check
         path = Path("conf") / CHOICES
         before = path.read_bytes() if path.exists() else None
         persist_choices(overrides, reset=reset)
