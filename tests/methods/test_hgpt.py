@@ -129,19 +129,19 @@ def test_spec_checks():
 
 # ---------------------------------------------------------------------------------------------- L_align
 
-def h2vq_tokenizer(seed=0, rates=(2, 4)):
+def h2vq_tokenizer(seed=0, rates=(2, 4), table="core_arms"):
     torch.manual_seed(seed)
     mcfg = {"family": "h2vq", "window": 4, "codebook_size": K, "code_dim": 8, "width": 16, "depth": 1,
             "dilation_growth": 3, "tail": "crop", "baseline_pool": "conv",
             "quantizer": {"decay": 0.99, "reset_threshold": 1.0},
-            "h2vq": {"table": TABLES["core_arms"], "fine": "arms", "rates": {"coarse": rates[0], "fine": rates[1]},
+            "h2vq": {"table": TABLES[table], "fine": "arms", "rates": {"coarse": rates[0], "fine": rates[1]},
                      "transform": "linear", "fusion_kernel": 3}}
     meta = {"stream": "holistic", "feat_dim": 263, "n_joints": 22, "feat_index": list(range(263)),
             "stream_joints": list(range(22))}
     tok = build_tokenizer(263, mcfg, torch.zeros(263), torch.ones(263), meta)
     with torch.no_grad():
-        tok.model.q_fine.codebook.normal_()
-        tok.model.q_coarse.codebook.normal_()
+        for q in (tok.model.q_fine, tok.model.q_coarse, *tok.model.q_mid):
+            q.codebook.normal_()
     return tok.eval()
 
 
@@ -161,7 +161,8 @@ def conv_tokenizer(family, levels=1):
     return tok.eval()
 
 
-@pytest.mark.parametrize("make,Q", [(h2vq_tokenizer, 3), (lambda: conv_tokenizer("vq"), 1),
+@pytest.mark.parametrize("make,Q", [(h2vq_tokenizer, 3), (lambda: h2vq_tokenizer(table="core3"), 5),
+                                    (lambda: conv_tokenizer("vq"), 1),
                                     (lambda: conv_tokenizer("rvq", 2), 2)])
 def test_one_hot_weights_decode_as_the_codes(make, Q):
     tok = make()
@@ -310,3 +311,29 @@ def _gcfg():
     from omegaconf import OmegaConf
     return OmegaConf.create(dict(sampling="sample", temperature=1.0, top_k=None, top_p=None, use_cache=True,
                                  cond_scale=1.0, part_cond_scale=None, min_frames=None, batch_size=2, seed=0))
+
+
+def test_core3_rows_read_write_and_align():
+    """An H²VQ over core3 (torso x2, legs x2, arms): the GPT reads its slot layout (three codebooks,
+    the arms slot last), generates five-code rows with each slot in its own book, and L_align
+    decodes its relaxed rows with gradients reaching the GPT."""
+    from party.methods.humantomato.family import slot_layout
+    tok = h2vq_tokenizer(table="core3")
+    groups, fine = slot_layout(tok)
+    assert (groups, fine) == ([0, 0, 2, 2, 1], 4)
+    torch.manual_seed(0)
+    entry = dict(stream="holistic", dim=16, layers=2, heads=2, mlp_ratio=2, order="fine_first", guidance=False)
+    m = HierarchicalGPT(HGPTSpec.from_config(dict(dropout=0.0, max_tokens=9, text_norm="none", cond_drop=0.0),
+                                             entry, groups, fine, K, 4, D_TEXT))
+    assert m.spec.groups == 3 and m.spec.perm == [4, 0, 1, 2, 3]
+    rows = m.generate(torch.randn(3, D_TEXT), generator=torch.Generator().manual_seed(1))["holistic"]
+    assert all(r.shape[1] == 5 and 0 <= r.min() and r.max() < K for r in rows if len(r))
+    torch.manual_seed(5)
+    tma = TMA(TMAConfig(motion_dim=263, text_dim=6, latent_dim=16, layers=1, heads=2, ff=32, dropout=0.1,
+                        max_len=64, vae=True))
+    meta = {"feat_dim": 263, "mean": [0.0] * 263, "std": [1.0] * 263, "max_text_tokens": 8}
+    m.aligner = Aligner(tok, tma, meta, TextFeatures(StubEncoder(), 8), 0.1, "gumbel_st", 1.0, 0.1, 0.85)
+    m.train()
+    out = m.losses(batch(Q=5))
+    out["loss"].backward()
+    assert torch.isfinite(out["align"]) and m.head.grad.abs().sum() > 0

@@ -93,11 +93,51 @@ def test_hierarchy_wiring():
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters()), mod
 
 
+def test_core3_chains_the_groups_fine_first_then_legs_then_torso():
+    """``groups: core3`` (Decision): arms quantized first and alone, legs after fusing the arms codes,
+    torso after fusing both; rows [torso x2, legs x2, arms], five codes per 4 frames; decode(encode(x))
+    is the evaluated reconstruction, one-hot weights decode as the codes; each group's codes move
+    only with its own channels and those of the groups quantized before it."""
+    torch.manual_seed(0)
+    m = build_model(263, cfg(table="core3"))
+    assert (m.fine, m.mids, m.coarse) == ("arms", ["legs"], "torso")
+    assert m.levels == 5 and m.slot_groups == [0, 0, 2, 2, 1]
+    assert bits_per_frame(m) == pytest.approx(5 * math.log2(16) / 4)
+    m.train()
+    m(torch.randn(4, 32, 263))
+    m.eval()
+    x = torch.randn(3, 24, 263)
+    mask = torch.ones(3, 24, dtype=torch.bool)
+    mask[2, 10:] = False
+    codes, _ = m.encode(x, mask)
+    assert codes.shape == (3, 6, 5) and (codes[2, 2:] == -1).all() and (codes[2, :2] >= 0).all()
+    out = m(x)
+    assert torch.equal(out["idx"], m.encode(x)[0]) and torch.equal(out["recon"], m.decode(out["idx"]).float())
+    assert len(out["usage"]) == 3 and {"loss_app_legs", "loss_app_fine", "loss_app_coarse"} <= set(out)
+    w = torch.nn.functional.one_hot(codes.clamp(min=0), 16).float() * (codes >= 0)[..., None]
+    assert torch.allclose(m.decode_weights(w), m.decode(codes), atol=1e-5)
+    idx = group_index(22, TABLES["core3"])
+    base = m.encode(x)[0]
+    for group, fixed, moved in (("torso", slice(2, 5), slice(0, 2)), ("legs", slice(4, 5), slice(2, 4)),
+                                ("arms", slice(5, 5), slice(4, 5))):
+        y = x.clone()
+        y[..., torch.as_tensor(idx[group])] += 3 * torch.randn(3, 24, len(idx[group]))
+        other = m.encode(y)[0]
+        assert torch.equal(base[..., fixed], other[..., fixed]), group         # the groups quantized before it
+        assert not torch.equal(base[..., moved], other[..., moved]), group     # its own codes
+    m.train()
+    m.zero_grad()
+    m(x)["loss_app_coarse"].backward()                # the torso's commitment reaches the legs' and arms' encoders
+    for mod in (m.enc_mid[0], m.enc_fine, m.fuse_mid[0], m.transform):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters()), mod
+
+
 def test_h2vq_refuses_what_it_cannot_read():
     with pytest.raises(ValueError, match="whole HumanML3D-style vector"):
         build_model(96, cfg())
-    with pytest.raises(ValueError, match="two groups"):
-        build_model(263, cfg(table="core3"))
+    with pytest.raises(ValueError, match="two groups or more"):
+        build_model(263, {**cfg(), "h2vq": {**cfg()["h2vq"], "table": {"all": {"root": True, "joints": list(range(1, 22)),
+                                                                             "contacts": ["left", "right"]}}}})
     with pytest.raises(ValueError, match="multiple of the coarse"):
         build_model(263, cfg((4, 2)))
     with pytest.raises(ValueError, match="window to it"):
@@ -148,6 +188,14 @@ def test_the_quantizer_grid_builds_every_point_at_its_bit_rate():
         bits[p["label"]] = bits_per_frame(m)
     assert bits == pytest.approx({"vq512": 2.25, "vq1024": 2.5, "rvq512x2": 4.5, "h2vq512_eq": 4.5,
                                   "h2vq512": 6.75, "rvq512x3": 6.75})
+    bits, groups = {}, {}
+    for p in expand(load_sweep("tomato_groups", conf / "sweep")):           # core_arms vs core3 (platform addition)
+        pc = apply_overrides(cfg, p["overrides"])
+        m = build_model(263, stream_config(pc.vqvae, "holistic")["model"])
+        bits[p["label"]], groups[p["label"]] = bits_per_frame(m), getattr(m, "mids", None)
+        assert pc.vqvae.metrics.groups == "core3"
+    assert bits == pytest.approx({"core_arms": 6.75, "core3": 11.25, "rvq512x5": 11.25})
+    assert groups == {"core_arms": [], "core3": ["legs"], "rvq512x5": None}
 
 
 def test_group_streams_are_the_disjoint_groups_and_merge_back_exactly():
