@@ -419,6 +419,7 @@ class VQModel:
     dilation_growth: int = MISSING
     tail: str = MISSING
     baseline_pool: str = MISSING
+    representation: str = _choice("h3d", "no_rot", "no_rot_no_vel")   # party.motion.features.REPRESENTATIONS
     lte: LTE = _group(LTE)
     gte: GTE = _group(GTE)
     quantizer: Quantizer = _group(Quantizer)

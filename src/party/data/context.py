@@ -38,19 +38,25 @@ class DataContext:
     def bank(self, split: str, min_len: int) -> FeatureBank:
         return FeatureBank(self.index, split, self.normalizer, self.store, min_len=min_len)
 
-    def for_stream(self, name: str) -> "StreamData":
+    def for_stream(self, name: str, representation: str = "h3d") -> "StreamData":
         self.layout.index(name)        # unknown stream -> clear KeyError
-        return StreamData(self.index, self.store, self.normalizer, self.layout, self.parts_cfg, name)
+        return StreamData(self.index, self.store, self.normalizer, self.layout, self.parts_cfg, name, representation)
 
 
 @dataclass
 class StreamData(DataContext):
-    """A ``DataContext`` seen through one stream."""
+    """A ``DataContext`` seen through one stream; ``representation`` (``vqvae.model.representation``,
+    HumanTOMATO Tab. 9): only the stream's channels of those kinds (``h3d``: all of them)."""
     stream: str = ""
+    representation: str = "h3d"
 
     @property
     def feat_index(self) -> np.ndarray:
-        return self.layout.index(self.stream)
+        idx = self.layout.index(self.stream)
+        if self.representation == "h3d":
+            return idx
+        from party.motion.features import representation_channels
+        return idx[np.isin(idx, representation_channels(self.n_joints, self.representation))]
 
     @property
     def in_dim(self) -> int:
@@ -60,7 +66,7 @@ class StreamData(DataContext):
         idx = self.index
         return {"stream": self.stream, "dataset": idx.dataset, "skeleton": idx.skeleton,
                 "fps": idx.fps, "feat_dim": idx.feat_dim, "n_joints": idx.n_joints,
-                "feat_index": [int(i) for i in self.feat_index],
+                "feat_index": [int(i) for i in self.feat_index], "representation": self.representation,
                 "stream_joints": [int(j) for j in self.layout.stream_joints(self.stream)]}
 
     def stats(self) -> tuple[np.ndarray, np.ndarray]:
@@ -80,6 +86,6 @@ def load_context(cfg: DictConfig) -> DataContext:
                        layout, parts_cfg)
 
 
-def load_stream_data(cfg: DictConfig, stream: str) -> StreamData:
-    """``load_context(cfg).for_stream(stream)``."""
-    return load_context(cfg).for_stream(stream)
+def load_stream_data(cfg: DictConfig, stream: str, representation: str = "h3d") -> StreamData:
+    """``load_context(cfg).for_stream(stream, representation)``."""
+    return load_context(cfg).for_stream(stream, representation)

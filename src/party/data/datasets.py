@@ -99,20 +99,25 @@ class FeatureBank:
 class WindowDataset(Dataset):
     """Random crops of ``window`` frames (tokenizer training); one item per clip per epoch.
 
-    ``stream`` selects a part stream of ``layout`` (``holistic`` = all channels).
-    With ``random_crop=False`` the crop is the clip's first window (deterministic eval).
+    ``stream`` selects a part stream of ``layout`` (``holistic`` = all channels); ``channels``, when
+    given, the full-vector channels to read instead (a stream seen through a representation:
+    ``StreamData.feat_index``). With ``random_crop=False`` the crop is the clip's first window
+    (deterministic eval).
     """
 
     def __init__(self, index: Index, store: MotionStore | None, split: str, window: int,
                  normalizer: Normalizer, layout=None, stream: str = "holistic",
-                 random_crop: bool = True, bank: FeatureBank | None = None):
+                 random_crop: bool = True, bank: FeatureBank | None = None, channels=None):
         self.bank = bank or FeatureBank(index, split, normalizer, store, min_len=window)
         keep = np.nonzero(self.bank.lengths >= window)[0]
         self.items = keep
         self.window = window
         self.random_crop = random_crop
         self.idx = None
-        if layout is not None and stream != layout.whole_stream:
+        if channels is not None:
+            if len(channels) != int(index.feat_dim) or not np.array_equal(np.asarray(channels), np.arange(len(channels))):
+                self.idx = torch.as_tensor(np.asarray(channels))
+        elif layout is not None and stream != layout.whole_stream:
             self.idx = torch.as_tensor(layout.index(stream))
 
     def __len__(self) -> int:

@@ -128,7 +128,10 @@ class TokenizerSource:
             raise TypeError(f"{stream}: {type(tokenizer).__qualname__} is neither a "
                             "party.tokenizers.protocol.Tokenizer nor a Codec")
         if self.own_stats and not np.array_equal(np.asarray(tokenizer.meta["feat_index"]), self.idx):
-            raise ValueError(f"{stream} tokenizer reads other feature channels than dataset.parts' {stream} stream")
+            rep = tokenizer.meta.get("representation", "h3d")
+            raise ValueError(f"{stream} tokenizer reads other feature channels than dataset.parts' {stream} stream"
+                             + (f" (the {rep} representation: vqvae.model.representation=h3d reads them all)"
+                                if rep != "h3d" else ""))
         self.window = int(tokenizer.window)
 
     def _norm(self, raw_s: torch.Tensor) -> torch.Tensor:

@@ -46,6 +46,23 @@ def feature_slices(n_joints: int) -> FeatureSlices:
                          slice(vel0, c0), slice(c0, c0 + 4))
 
 
+# HumanTOMATO Tab. 9 (SPEC-humantomato §1): which kinds of channel a tokenizer reads. h3d: all of them;
+# no_rot: root, ric, local velocity, contacts (the paper's format on 22 joints: 137 channels);
+# no_rot_no_vel: root, ric, contacts (71). Positions come from root + ric alone (recover_from_ric).
+REPRESENTATIONS = {"h3d": ("root", "ric", "rot", "vel", "contacts"),
+                   "no_rot": ("root", "ric", "vel", "contacts"),
+                   "no_rot_no_vel": ("root", "ric", "contacts")}
+
+
+def representation_channels(n_joints: int, representation: str) -> np.ndarray:
+    """The full-vector channels (sorted) of ``representation`` (``REPRESENTATIONS``)."""
+    if representation not in REPRESENTATIONS:
+        raise ValueError(f"representation must be one of {', '.join(REPRESENTATIONS)}, got {representation!r}")
+    sl = feature_slices(n_joints)
+    return np.concatenate([np.arange(getattr(sl, k).start, getattr(sl, k).stop)
+                           for k in REPRESENTATIONS[representation]]).astype(np.int64)
+
+
 def n_joints_from_dim(feat_dim: int) -> int:
     j, rem = divmod(feat_dim + 1, 12)   # D = 12J - 1
     if rem or j < 2:

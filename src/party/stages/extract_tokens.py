@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 
 def _check(tok: Tokenizer, data, path: Path) -> None:
     m = tok.meta
+    if m.get("representation", "h3d") != "h3d":
+        raise ValueError(f"{path}: this tokenizer reads the {m['representation']} representation "
+                         "(vqvae.model.representation, HumanTOMATO Tab. 9: reconstruction only); token stores and "
+                         "generators read h3d: retrain it with vqvae.model.representation=h3d")
     if int(m["feat_dim"]) != data.index.feat_dim or list(m["feat_index"]) != [int(i) for i in data.feat_index]:
         raise ValueError(f"{path}: tokenizer was trained on {m['dataset']} ({m['feat_dim']}-dim, stream "
                          f"{m['stream']}) and does not match the prepared index {data.index.path}; "

@@ -17,7 +17,7 @@ from party.data.context import StreamData
 def train_loader(data: StreamData, crop: int, batch_size: int, num_workers: int, pin_memory: bool,
                  seed: int, split: str = "train", bank: FeatureBank | None = None) -> DataLoader:
     ds = WindowDataset(data.index, data.store, split, crop, data.normalizer, layout=data.layout,
-                       stream=data.stream, bank=bank)
+                       stream=data.stream, bank=bank, channels=data.feat_index)
     if len(ds) == 0:
         raise ValueError(f"{data.index.path}: no {split} clip has {crop} frames (vqvae train crop)")
     g = torch.Generator().manual_seed(seed)

@@ -82,7 +82,7 @@ def train_tokenizer(cfg, stream: str, out_dir: str | Path, run=None, callbacks: 
     t, mcfg = scfg["train"], scfg["model"]
     seed = cfg.seed
     start_training(seed, t["threads"])
-    data = load_stream_data(cfg, stream)
+    data = load_stream_data(cfg, stream, str(mcfg.get("representation", "h3d")))
     tok = build_tokenizer(data.in_dim, mcfg, *data.stats(), data.meta())
     model = tok.model
     lit = VQVAELit(tok, scfg, cfg.vqvae.metrics, metric_groups(cfg, data.meta()["stream_joints"]))
