@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from party.pipeline_params import PEOPLE_ONLY_GENERATE_KEYS, generate_params
+from party.pipeline_params import PEOPLE_ONLY_GENERATE_KEYS, generate_params, tokenizer_params
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = "generate@party"
@@ -44,17 +44,20 @@ def scratch(tmp_path_factory):
     """A git + DVC repository holding dvc.yaml, params.yaml (the project's, dumped the way
     ``status`` writes it back), placeholders for the inputs and outputs of ``generate@party``,
     and the stage's lock."""
+    return _scratch(tmp_path_factory.mktemp("dvcparams"), STAGE)
+
+
+def _scratch(work: Path, stage_name: str):
     from dvc.dependency.param import ParamsDependency
     from dvc.repo import Repo
 
-    work = tmp_path_factory.mktemp("dvcparams")
     shutil.copy2(ROOT / "dvc.yaml", work / "dvc.yaml")
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     (work / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     subprocess.run(["git", "init", "-q"], cwd=work, check=True)
     Repo.init(str(work)).close()
     with chdir(work), Repo(str(work)) as repo:                # DVC reads paths against the working folder
-        (stage,) = repo.stage.collect(STAGE)
+        (stage,) = repo.stage.collect(stage_name)
         paths = [Path(d.def_path) for d in stage.deps if not isinstance(d, ParamsDependency)]
         paths += [Path(o.def_path) for o in stage.outs]
         for rel in paths:
@@ -64,17 +67,17 @@ def scratch(tmp_path_factory):
             else:                                            # a folder
                 (work / rel).mkdir(parents=True, exist_ok=True)
                 (work / rel / "placeholder").write_text("placeholder\n")
-        repo.commit(STAGE, force=True)
+        repo.commit(stage_name, force=True)
     return work, params
 
 
-def status(work: Path, params: dict) -> dict:
-    """``dvc status generate@party`` with ``params`` as params.yaml; {} when up to date."""
+def status(work: Path, params: dict, stage: str = STAGE) -> dict:
+    """``dvc status <stage>`` with ``params`` as params.yaml; {} when up to date."""
     from dvc.repo import Repo
 
     (work / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     with chdir(work), Repo(str(work)) as repo:
-        return repo.status(targets=[STAGE])
+        return repo.status(targets=[stage])
 
 
 def changed_params(st: dict) -> set[str]:
@@ -116,3 +119,41 @@ def test_changing_a_people_only_key_leaves_the_stage_up_to_date(scratch):
     for key in sorted(PEOPLE_ONLY_GENERATE_KEYS):
         assert status(work, changed(params, key)) == {}, key
     assert status(work, params) == {}
+
+
+def test_tokenizer_stages_list_the_keys_a_tokenizer_reads():
+    """The three tokenizer stage groups list ``tokenizer_params()`` (what
+    tests/tokenizers/test_training.py trains a tokenizer with, and nothing else of ``vqvae``)."""
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    for group in ("train_vqvae", "train_part_vqvae", "train_extra_vqvae"):
+        assert stages[group]["do"]["params"] == tokenizer_params(), group
+
+
+def _set(params: dict, dotted: str, value) -> dict:
+    out = copy.deepcopy(params)
+    *parents, leaf = dotted.split(".")
+    node = out
+    for k in parents:
+        node = node[k]
+    node[leaf] = value
+    return out
+
+
+def test_another_stream_or_a_grid_choice_leaves_a_tokenizer_up_to_date(tmp_path):
+    """Editing another stream's tokenizer, the stream lists, the token folder or a grid's choice does
+    not rerun ``train_vqvae@holistic`` (whose rewritten outputs would rerun everything downstream);
+    its own entry, the shared model and the seed do."""
+    stage = "train_vqvae@holistic"
+    work, params = _scratch(tmp_path, stage)
+    assert status(work, params, stage) == {}
+    vq = params["vqvae"]
+    for key, value in (("vqvae.tokenizers.arms.codebook_size", vq["tokenizers"]["arms"]["codebook_size"] + 1),
+                       ("vqvae.part_streams", vq["part_streams"][:-1]),
+                       ("vqvae.tokens_dir", "elsewhere/tokens"),
+                       ("vqvae.ablation.sweep", "tomato_groups")):
+        assert status(work, _set(params, key, value), stage) == {}, key
+    for key, value in (("vqvae.tokenizers.holistic.codebook_size", vq["tokenizers"]["holistic"]["codebook_size"] + 1),
+                       ("vqvae.model.width", vq["model"]["width"] + 1),
+                       ("seed", params["seed"] + 1)):
+        assert status(work, _set(params, key, value), stage) != {}, key
+    assert status(work, params, stage) == {}

@@ -27,3 +27,18 @@ def generate_params(fields: Iterable[str]) -> list[str]:
     """The ``generator.generate.<key>`` params of the ``generate`` stage, in the order of
     ``fields`` (the keys of the ``generator.generate`` block): every key but the people-only ones."""
     return [f"generator.generate.{k}" for k in fields if k not in PEOPLE_ONLY_GENERATE_KEYS]
+
+
+#: The ``vqvae`` keys a tokenizer stage (``train_vqvae``, ``train_part_vqvae``, ``train_extra_vqvae``:
+#: ``party.tokenizers.train``) reads, beside ``vqvae.tokenizers.<its stream>`` (``TOKENIZER_STREAM_KEY``)
+#: and the stream itself (the stage's command): not the other streams' entries, the stream lists,
+#: ``tokens_dir`` or ``ablation``, so adding a stream or choosing a grid does not retrain every
+#: tokenizer (and, through their rewritten outputs, everything downstream).
+TOKENIZER_VQVAE_KEYS = ("model", "families", "loss", "optim", "train", "diagnostics", "metrics", "eval",
+                        "trainer", "out_dir", "resume_dir")
+TOKENIZER_STREAM_KEY = "vqvae.tokenizers.${item}"
+
+
+def tokenizer_params() -> list[str]:
+    """dvc.yaml's ``params:`` of a tokenizer stage (``foreach`` item: the stream)."""
+    return ["seed", *(f"vqvae.{k}" for k in TOKENIZER_VQVAE_KEYS), TOKENIZER_STREAM_KEY, "trainer", "dataset.parts"]

@@ -314,3 +314,26 @@ def test_monitored_rec_loss_is_computed_on_logged_steps_alone(tiny_prepared, tmp
     a, b = runs["logged"][1], runs["every"][1]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert runs["logged"][0]["val/mpjpe_mm"] == runs["every"][0]["val/mpjpe_mm"]
+
+
+@pytest.mark.parametrize("family", ["temporal_vq", "h2vq"])
+def test_a_tokenizer_stage_reads_only_the_vqvae_keys_dvc_yaml_lists(tiny_prepared, tmp_path, family):
+    """dvc.yaml reruns a tokenizer stage when a key it lists changes, and only then
+    (party.pipeline_params.tokenizer_params): the stage must train with nothing else of ``vqvae`` but
+    the stream and that stream's own ``vqvae.tokenizers`` entry (a key read beyond them fails here)."""
+    from omegaconf import OmegaConf
+
+    from party.pipeline_params import TOKENIZER_VQVAE_KEYS
+    from party.stages import train_vqvae
+    from tok_helpers import tiny_cfg
+
+    over = {"vqvae.tokenizers.holistic.family": "h2vq", "vqvae.tokenizers.holistic.window": 4} \
+        if family == "h2vq" else {}
+    c = tiny_cfg(tmp_path, tiny_prepared, **{"vqvae.streams": "[holistic]", "vqvae.stream": "holistic",
+                                             "vqvae.diagnostics.on_collapse": "warn", **over})     # 4 steps
+    vq = OmegaConf.to_container(c.vqvae, resolve=True)
+    c.vqvae = {**{k: vq[k] for k in TOKENIZER_VQVAE_KEYS}, "stream": "holistic",
+               "tokenizers": {"holistic": vq["tokenizers"]["holistic"]}}
+    # the stage's body (train_vqvae.run without the schema check of the whole file, which reads every key)
+    metrics = train_vqvae.run.__wrapped__(c, None)
+    assert (tmp_path / "tokenizers" / "holistic" / "model.pt").is_file() and metrics["levels"] >= 1
