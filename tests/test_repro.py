@@ -248,9 +248,35 @@ def test_sigterm_ends_the_running_stages_under_dvc(tmp_path):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode != 0 and "Terminated" in err
+    summary = json.loads((tmp_path / "logs" / "summary.json").read_text())     # written before it re-raises
+    assert {s: r["status"] for s, r in summary["stages"].items()} == {"a": "failed", "b": "failed"}
     for pid in stages:                     # the stages are gone (reaped or not: no longer running)
         try:
             state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
         except FileNotFoundError:
             continue
         assert state in ("Z", "X"), (pid, state)
+
+
+@pytest.mark.parametrize("signal_name,code", [("SIGTERM", 143), ("Ctrl-C", 130)])
+def test_a_stopped_repro_says_so_in_one_line(tmp_path, monkeypatch, capsys, signal_name, code):
+    """``party repro`` stopped by SIGTERM or Ctrl-C: one line saying what happened to the running
+    stages and how to go on, exit 143 / 130, no traceback."""
+    import contextlib
+
+    import dvc.repo
+
+    from party.lifecycle import Terminated
+    (tmp_path / "dvc.yaml").write_text("stages: {}\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(dvc.repo, "Repo", lambda *a, **k: contextlib.nullcontext())
+    monkeypatch.setattr(repro, "stage_graph", lambda r: {"a": []})
+    monkeypatch.setattr(repro, "changed_stages", lambda r: {"a"})
+
+    def stopped(*a, **k):
+        raise Terminated("received signal 15 (SIGTERM)") if signal_name == "SIGTERM" else KeyboardInterrupt()
+    monkeypatch.setattr(repro, "run", stopped)
+    assert repro.main(["-j", "2"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith(f"party repro: stopped by {signal_name}: the stages that were running were ended")
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err

@@ -278,6 +278,7 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
     result: dict[str, dict] = {}
     threads: dict[str, int | None] = {}
     failed = False
+    interrupted: BaseException | None = None
     t0 = time.monotonic()
     from party.forkserver import Server
     from party.lifecycle import terminate_on_sigterm
@@ -348,18 +349,22 @@ def run(graph: dict[str, list[str]], jobs: int, keep_going: bool = False, dvc: s
                         "unchanged" if SKIPPED_MARK in log.read_text(errors="replace") else "ran")
                     result[s] = {"status": status, "seconds": secs, **_stage_info(log_dir, s, threads.get(s))}
                     print(f"party repro: {s}: {'done' if status == 'ran' else status} in {secs:.0f} s", flush=True)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:          # Ctrl-C, or SIGTERM (party.lifecycle.Terminated)
             for s, (p, *_rest) in running.items():
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGTERM)   # stages end their MLflow runs KILLED on SIGTERM
-                result[s] = {"status": "failed", "seconds": 0.0}
+                result[s] = {"status": "failed", "seconds": round(time.monotonic() - running[s][1], 1)}
             for p, *_rest in running.values():
                 p.wait()
                 _wait_group(p.pid)
-            raise
+            for s in pending:
+                result[s] = {"status": "not started", "seconds": 0.0}
+            interrupted = e
     summary = {"jobs": jobs, "seconds": round(time.monotonic() - t0, 1), "fork_server": bool(fork_env),
                "stages": {s: result[s] for s in graph if s in result}, "machine": machine}
     (log_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if interrupted is not None:                # after the summary: what ran, what was stopped
+        raise interrupted
     return summary
 
 
@@ -389,7 +394,15 @@ def main(argv: list[str]) -> int:
         # is not started (each `dvc repro --single-item` costs seconds of DVC reading dvc.yaml,
         # params.yaml and dvc.lock to find that out)
         unchanged = () if a.force else set(graph) - changed_stages(repo)
-    summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None,
-                  unchanged=unchanged, fork_server=fork_server_wanted())
+    from party.lifecycle import Terminated
+    try:
+        summary = run(graph, a.jobs, keep_going=a.keep_going, extra=["--force"] if a.force else None,
+                      unchanged=unchanged, fork_server=fork_server_wanted())
+    except KeyboardInterrupt as e:
+        how = "SIGTERM" if isinstance(e, Terminated) else "Ctrl-C"
+        print(f"party repro: stopped by {how}: the stages that were running were ended (their MLflow runs "
+              f"KILLED, their last good outputs kept; {LOG_DIR}/summary.json says which); `party repro` again "
+              "goes on from there", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     print(table(summary))
     return 0 if all(r["status"] in OK for r in summary["stages"].values()) else 1
