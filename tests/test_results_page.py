@@ -261,3 +261,28 @@ def test_a_rerun_without_a_grid_keeps_the_earlier_grid_marked_with_its_commit(tm
     assert cli.main(["results", "--root", str(tmp_path), "--drop-grids"]) == 0
     assert "gen_tab5" not in (tmp_path / "docs" / "results.md").read_text()
     assert results.load(tmp_path / "docs" / "results.json")["grids"] == []
+
+
+def test_grids_only_puts_another_workspaces_grid_onto_the_page(tmp_path):
+    """`party results --grids-only --root W`: W's grid tables replace those of the same name on the
+    page (its evaluation and other grids kept), each marked with the commits its points recorded."""
+    summary = {"jobs": 2, "seconds": 300.0, "stages": STAGES, "machine": MACHINE}
+    main = tmp_path / "main"
+    main.mkdir()
+    page_of(project(main, evaluation(alpha_fid=10.0, beta_fid=20.0), summary))
+    other = tmp_path / "other"
+    for name, commits in (("gen_tab5", ["a" * 40]), ("tomato_groups", ["b" * 40, "c" * 40])):
+        g = other / "data" / "ablations" / name
+        g.mkdir(parents=True)
+        (g / "table.md").write_text(f"# {name}\n\n| point | mpjpe |\n|---|---|\n| p0 | 1.5 |\n")
+        (g / "status.json").write_text(json.dumps({"name": name, "points": {
+            f"p{i}": {"status": "done", "commit": c} for i, c in enumerate(commits)}}))
+    assert cli.main(["results", "--root", str(other), "--out", str(main / "docs"), "--grids-only"]) == 0
+    page = (main / "docs" / "results.md").read_text()
+    assert "| alpha |" in page and "10.000±.500" in page                       # the evaluation kept
+    assert "| no_pg | 12.345 |" not in page                                   # gen_tab5 replaced ...
+    assert f"(points: 1 done; commit `{'a' * 7}`)" in page                      # ... marked with its commit
+    assert f"(points: 2 done; commits `{'b' * 7}`, `{'c' * 7}`)" in page and "### tomato_groups" in page
+    assert page == results.render(results.load(main / "docs" / "results.json"))
+    with pytest.raises(SystemExit, match="no grid table under"):
+        cli.main(["results", "--root", str(tmp_path / "none"), "--out", str(main / "docs"), "--grids-only"])

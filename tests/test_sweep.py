@@ -43,6 +43,9 @@ def test_a_failing_point_is_recorded_the_rest_run_and_the_stage_fails(tmp_path, 
     assert calls == ["y"]
     assert [r["value"] for r in rows] == [10, 20, 30]
     assert main(["sweep-status", str(out)]) == 0
+    head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0:            # each finished point records the commit it ran (party results prints it)
+        assert {e.get("commit") for e in read_status(out)["points"].values()} == {head.stdout.strip()}
 
 
 def test_sweep_status_into_a_pipe_closed_early_is_quiet(tmp_path):

@@ -24,6 +24,7 @@ of the second (the two intervals do not overlap).
     party results [--root DIR] [--out DIR]   gather into <out>/results.json, render <out>/results.md;
                                              grids of the earlier snapshot that DIR did not run stay,
                                              marked kept with their commit (--drop-grids: they go)
+    party results --grids-only --root DIR    put DIR's grid tables onto the page (evaluation and other grids kept)
     party results --render-only              render <out>/results.md from <out>/results.json
     party results --check                    exit 1 if <out>/results.md is not render(<out>/results.json)
 """
@@ -121,8 +122,11 @@ def grid_tables(root: Path, params: Mapping) -> list[dict]:
             st = _read_json(status, "sweep status") if status.is_file() else {}
             for p in (st.get("points") or {}).values():
                 counts[p.get("status", "?")] = counts.get(p.get("status", "?"), 0) + 1
+            commits = sorted({str(p["commit"]) for p in (st.get("points") or {}).values()
+                              if p.get("status") == "done" and p.get("commit")})
             out.append({"name": table.parent.name, "path": table.relative_to(root).as_posix(),
-                        "table_md": table.read_text(), "points": counts, **seed_rows(root, table.parent, st)})
+                        "table_md": table.read_text(), "points": counts, **seed_rows(root, table.parent, st),
+                        **({"commits": commits} if commits else {})})
     return out
 
 
@@ -178,7 +182,7 @@ def gather(root: Path = Path(".")) -> dict:
     read = [mfile, tfile, *(metrics_dir / f"{s}.json" for s in means)] + ([sfile] if summary else [])
     grids = grid_tables(root, params)
     for g in grids:
-        g["commit"] = (commit or {}).get("sha")
+        g["commit"] = _grid_commit(g, commit)
     return {
         "schema": SCHEMA,
         "commit": commit,
@@ -410,9 +414,12 @@ def render_grids(grids: Sequence[Mapping]) -> list[str]:
     for g in grids:
         pts = ", ".join(f"{n} {k}" for k, n in sorted((g.get("points") or {}).items()))
         sha = str(g.get("commit") or "")[:7]
+        several = [str(c)[:7] for c in g.get("commits") or []]
+        code = ("commits " + ", ".join(f"`{c}`" for c in several)) if len(several) > 1 else \
+            f"commit `{sha}`" if sha else ""
         notes = ([f"points: {pts}"] if pts else []) + (
-            [f"kept from an earlier run, commit `{sha or '?'}`, not rerun for this page"] if g.get("kept")
-            else [f"commit `{sha}`"] if sha else [])
+            [f"kept from an earlier run, {code or 'commit unknown'}, not rerun for this page"] if g.get("kept")
+            else [code] if code else [])
         out += [f"From `{g['path']}`" + (f" ({'; '.join(notes)})" if notes else "") + ":", "",
                 _demote(g.get("table_md", ""), 2), ""]
         if g.get("seeds") and g.get("rows"):
@@ -503,6 +510,41 @@ def dump(snapshot: Mapping) -> str:
     return json.dumps(snapshot, indent=1, ensure_ascii=False) + "\n"
 
 
+def _grid_commit(grid: Mapping, run_commit: Mapping | None) -> str | None:
+    """The commit a grid's points ran on (their status entries record it; several: the last), else
+    (points from before they recorded it) the pipeline run's."""
+    commits = grid.get("commits") or []
+    return commits[-1] if commits else (run_commit or {}).get("sha")
+
+
+def _head(root: Path) -> dict | None:
+    import subprocess
+    try:
+        r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return {"sha": r.stdout.strip()} if r.returncode == 0 and r.stdout.strip() else None
+
+
+def add_grids(root: Path, snapshot: Mapping) -> dict:
+    """``snapshot`` with the grids of ``root`` in place of those of the same name (the others and the
+    evaluation kept): a grid run in another workspace, or later than the pipeline, onto the page."""
+    pfile = Path(root) / "params.yaml"
+    params = (yaml.safe_load(pfile.read_text()) or {}) if pfile.is_file() else {}
+    new = grid_tables(Path(root), params)
+    if not new:
+        raise SystemExit(f"party results: no grid table under {root} (`party vq_ablation` / `party gen_ablation` "
+                         "write <ablation.out_dir>/<name>/table.md)")
+    head = _head(Path(root))              # points that recorded no commit: the workspace's
+    for g in new:
+        g["commit"] = _grid_commit(g, head)
+    names = {g["name"] for g in new}
+    out = dict(snapshot)
+    out["grids"] = [g for g in snapshot.get("grids") or [] if g["name"] not in names] + new
+    out["inputs"] = [*(snapshot.get("inputs") or []), *(g["path"] for g in new if g["path"] not in (snapshot.get("inputs") or []))]
+    return out
+
+
 def keep_grids(new: dict, old: Mapping | None) -> dict:
     """``new`` with every grid of the earlier snapshot ``old`` that ``new``'s project did not run
     (a sweep takes hours; a fresh run of the default should not drop its table), marked ``kept``:
@@ -551,6 +593,8 @@ def main(argv: list[str]) -> int:
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--render-only", action="store_true", help="render results.md from the existing results.json")
     mode.add_argument("--check", action="store_true", help="exit 1 if results.md is not what results.json renders")
+    mode.add_argument("--grids-only", action="store_true",
+                      help="put the grids of --root onto the existing page (its evaluation and other grids kept)")
     ap.add_argument("--drop-grids", action="store_true",
                     help="only the grids this project ran (default: the snapshot's other grids stay, marked kept)")
     a = ap.parse_args(argv)
@@ -581,6 +625,16 @@ def main(argv: list[str]) -> int:
         if readme_new != readme_text:
             write_text(readme, readme_new)
         print(f"wrote {out / PAGE}")
+        return 0
+    if a.grids_only:
+        from party.io import write_text
+        snap = out / SNAPSHOT
+        if not snap.is_file():
+            print(f"party results: {snap} not found; run `party results` after a pipeline run first", file=sys.stderr)
+            return 2
+        write_text(snap, dump(add_grids(a.root, load(snap))))
+        write_text(out / PAGE, render(load(snap)))
+        print(f"wrote {snap} and {out / PAGE} (grids of {a.root})")
         return 0
     snap, page = write(a.root, out, keep=not a.drop_grids)
     print(f"wrote {snap} and {page}")

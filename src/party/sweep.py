@@ -322,6 +322,10 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
     parent = (os.environ.get(PARENT_ENV) if mode == "point" else None) or tracking.active_run_id()
     tracking.log_text(Path(spec["path"]).read_text(), "sweep.yaml")
     me = {"host": socket.gethostname(), "pid": os.getpid()}
+    from party.tracking.run import _git_state
+    git = _git_state()                  # each finished point records the code it ran (party results prints it)
+    code = {k: v for k, v in (("commit", git.get("party.git_commit")), ("dirty", git.get("party.git_dirty")))
+            if v not in (None, "unknown")}
     from party.slurm import current_job
     if (job := current_job()) is not None:
         me["slurm_job"] = job
@@ -409,7 +413,7 @@ def run_grid(cfg, spec: dict, stage: str, point_fn: Callable[[Any, dict, Any], d
                          finished_ts=time.time())
             record(label, entry)
             raise
-        entry.update(status="done", finished=now(), finished_ts=time.time(), row=row)
+        entry.update(status="done", finished=now(), finished_ts=time.time(), row=row, **code)
         record(label, entry)
         tracking.log_metrics(_numbers(label, row))
 
