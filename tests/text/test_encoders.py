@@ -96,6 +96,43 @@ def test_minilm_tokens_pool_to_the_sentence_embedding(minilm):
     assert torch.equal(l1, lengths) and torch.allclose(f1, feats, atol=tol)
 
 
+def test_encode_with_tokens_is_the_two_calls_in_one_pass(minilm, monkeypatch):
+    """``encode_with_tokens``: MiniLM gives the sentence vectors and the token features of one forward
+    pass per batch (half the passes of ``encode`` + ``encode_tokens``), the same values bit for bit,
+    in the caller's order over several batches of unequal lengths."""
+    minilm = minilm[0]
+    texts = [f"a person {'slowly ' * (i % 5)}walks forward and waves the {'left' if i % 2 else 'right'} hand"
+             for i in range(11)] + ["jump"]
+    monkeypatch.setattr(minilm, "batch_size", 4)
+    calls = []
+    real = minilm._forward
+    monkeypatch.setattr(minilm, "_forward", lambda t: calls.append(len(t)) or real(t))
+    sent, feats, lens = minilm.encode_with_tokens(texts)
+    assert calls == [4, 4, 4]                                  # one pass per batch
+    f2, l2 = minilm.encode_tokens(texts)
+    assert torch.equal(sent, minilm.encode(texts)) and torch.equal(feats, f2) and torch.equal(lens, l2)
+    assert len(calls) == 9
+
+
+def test_encode_with_tokens_falls_back_to_the_two_calls():
+    from party.text.encoders import TextEncoder
+
+    class Two(TextEncoder):
+        id, dim, device, batch_size = "two", 3, torch.device("cpu"), 2
+
+        def _encode_batch(self, texts):
+            return torch.tensor([[len(t), 0.0, 1.0] for t in texts])
+
+        def _tokens_batch(self, texts):
+            n = torch.tensor([len(t.split()) for t in texts])
+            return torch.ones(len(texts), int(n.max()), 3) * (torch.arange(int(n.max()))[None, :, None] < n[:, None, None]), n
+
+    texts = ["a b", "c", "d e f"]
+    sent, feats, lens = Two().encode_with_tokens(texts)
+    assert torch.equal(sent, Two().encode(texts)) and torch.equal(lens, torch.tensor([2, 1, 3]))
+    assert torch.equal(feats, Two().encode_tokens(texts)[0])
+
+
 def _clip_cfg(**kw):
     cfg = OmegaConf.load(REPO / "conf/text/clip.yaml")
     cfg.device, cfg.batch_size = "cpu", 4

@@ -12,6 +12,8 @@
   projected by ``text_projection`` (d_tok = 512, the space of ``encode``); MiniLM token features
   are the last hidden states (d_tok = 384) that ``encode`` mean-pools. They are what the
   evaluator's text encoder can read in place of GloVe word vectors (word pieces, not words).
+- ``.encode_with_tokens(texts) -> (encode(texts), *encode_tokens(texts))``: both, from one forward
+  pass per batch where the backend gives both at once (MiniLM), the same values as the two calls.
 
 Backends (``text_cfg.name``):
 
@@ -136,6 +138,11 @@ class TextEncoder:
     def _tokens_batch(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError
 
+    def _both_batch(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sentence vectors, token features, lengths) of one batch from one forward pass, for a backend
+        that has one (override it); ``encode_with_tokens`` calls the two otherwise."""
+        raise NotImplementedError
+
     @staticmethod
     def _check(texts) -> list[str]:
         if isinstance(texts, str):
@@ -179,6 +186,25 @@ class TextEncoder:
         L = max(f.shape[1] for f in feats)
         feats = [F.pad(f, (0, 0, 0, L - f.shape[1])) for f in feats]
         return torch.cat(feats)[inverse], torch.cat(lens)[inverse]
+
+    @torch.inference_mode()
+    def encode_with_tokens(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``encode(texts)`` and ``encode_tokens(texts)`` together: one forward pass per batch (the
+        same batches, so the same values) where the backend has one (``_both_batch``)."""
+        texts = self._check(texts)
+        if not texts or type(self)._both_batch is TextEncoder._both_batch:
+            return (self.encode(texts), *self.encode_tokens(texts))
+        batches, inverse = self._batches(texts)
+        sents, feats, lens = [], [], []
+        for b in batches:
+            with self._autocast():
+                s, f, n = self._both_batch(b)
+            sents.append(s.float().cpu())
+            feats.append(f.float().cpu())
+            lens.append(n.long().cpu())
+        L = max(f.shape[1] for f in feats)
+        feats = [F.pad(f, (0, 0, 0, L - f.shape[1])) for f in feats]
+        return torch.cat(sents)[inverse], torch.cat(feats)[inverse], torch.cat(lens)[inverse]
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(id={self.id!r}, dim={self.dim}, device={self.device})"
@@ -242,10 +268,17 @@ class MiniLMEncoder(TextEncoder):
         return self._forward(texts)["sentence_embedding"]
 
     def _tokens_batch(self, texts):
-        out = self._forward(texts)
+        return self._tokens_of(self._forward(texts))
+
+    @staticmethod
+    def _tokens_of(out):
         mask = out["attention_mask"]
         feats = out["token_embeddings"] * mask.unsqueeze(-1).to(out["token_embeddings"].dtype)
         return feats, mask.sum(1)
+
+    def _both_batch(self, texts):
+        out = self._forward(texts)
+        return (out["sentence_embedding"], *self._tokens_of(out))
 
 
 # ---------------------------------------------------------------- CLIP (open_clip)

@@ -48,8 +48,11 @@ class TextFeatures:
         if not new:
             return
         with torch.no_grad():
-            feats, lens = self.encoder.encode_tokens(new)
-            sent = self.encoder.encode(new)
+            if hasattr(self.encoder, "encode_with_tokens"):      # one forward pass for both (MiniLM)
+                sent, feats, lens = self.encoder.encode_with_tokens(new)
+            else:
+                feats, lens = self.encoder.encode_tokens(new)
+                sent = self.encoder.encode(new)
         feats, lens = torch.as_tensor(feats).float(), torch.as_tensor(lens).long().clamp(1, self.max_tokens)
         for i, c in enumerate(new):
             self._tok[c] = feats[i, : int(lens[i])].half().clone()
