@@ -196,6 +196,12 @@ def test_the_quantizer_grid_builds_every_point_at_its_bit_rate():
         assert pc.vqvae.metrics.groups == "core3"
     assert bits == pytest.approx({"core_arms": 6.75, "core3": 11.25, "rvq512x5": 11.25})
     assert groups == {"core_arms": [], "core3": ["legs"], "rvq512x5": None}
+    # the table's per-group columns follow the grid's fixed metrics table (core3), not the base config's
+    from party.stages.vq_ablation import columns
+    cols = columns(cfg, expand(load_sweep("tomato_groups", conf / "sweep")))
+    assert [c for c in cols if c.startswith("mpjpe_") and c != "mpjpe_global_mm" and c.count("_") == 2] == \
+        ["mpjpe_torso_mm", "mpjpe_legs_mm", "mpjpe_arms_mm"]
+    assert "mpjpe_core_mm" in columns(cfg) and "mpjpe_core_mm" not in cols
 
 
 def test_group_streams_are_the_disjoint_groups_and_merge_back_exactly():

@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 
 from party.evaluation.loading import reconstruction_fid_scorer
 from party.stage import stage
-from party.sweep import expand, load_sweep, run_grid
+from party.sweep import apply_overrides, expand, load_sweep, run_grid
 from party.tokenizers.train import train_tokenizer
 
 COLUMNS = ["point", "family", "window", "lte", "gte", "levels", "bits_per_frame", "params", "mpjpe_mm", "mpjpe_global_mm", "mpjpe_ratio",
@@ -41,10 +41,17 @@ COLUMNS = ["point", "family", "window", "lte", "gte", "levels", "bits_per_frame"
 ERRORS = ("mpjpe", "pa_mpjpe", "accel")       # per group of vqvae.metrics.groups, after accel_mm
 
 
-def columns(cfg) -> list[str]:
-    """``COLUMNS`` with MPJPE, PA-MPJPE and Accel of every group of ``vqvae.metrics.groups``."""
-    table = cfg.vqvae.metrics.get("groups")
-    groups = list(((cfg.dataset.parts.get("groups") or {}).get(table) or {}) if table else [])
+def columns(cfg, points: list[dict] | None = None) -> list[str]:
+    """``COLUMNS`` with MPJPE, PA-MPJPE and Accel of every group of ``vqvae.metrics.groups``: of
+    ``cfg``, or, given the grid's ``points``, of each point's config (its ``fixed`` and own
+    overrides may choose another table), in order of first appearance."""
+    configs = [cfg] if points is None else [apply_overrides(cfg, p["overrides"]) for p in points]
+    groups: list[str] = []
+    for c in configs:
+        table = c.vqvae.metrics.get("groups")
+        for g in ((c.dataset.parts.get("groups") or {}).get(table) or {}) if table else []:
+            if g not in groups:
+                groups.append(str(g))
     at = COLUMNS.index("accel_mm") + 1
     return COLUMNS[:at] + [f"{e}_{g}_mm" for g in groups for e in ERRORS] + COLUMNS[at:]
 _FID_SETUP = ("eval", "evaluator", "dataset", "paths")
@@ -94,7 +101,7 @@ def run(cfg, run_) -> list[dict]:
     stream = spec["stream"]
     run_.set_tags({"party.sweep": spec["name"], "mlflow.runName": f"vq_ablation-{spec['name']}"})
     scorers: dict[str, object] = {}
-    cols = columns(cfg)
+    cols = columns(cfg, expand(spec))
 
     def point(pcfg, p: dict, prun) -> dict:
         m = train_tokenizer(pcfg, stream, out / "points" / p["label"], prun)
