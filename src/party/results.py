@@ -517,13 +517,10 @@ def _grid_commit(grid: Mapping, run_commit: Mapping | None) -> str | None:
     return commits[-1] if commits else (run_commit or {}).get("sha")
 
 
-def _head(root: Path) -> dict | None:
-    import subprocess
-    try:
-        r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return {"sha": r.stdout.strip()} if r.returncode == 0 and r.stdout.strip() else None
+def _with_grids(snapshot: Mapping, grids: list) -> dict:
+    """``snapshot`` showing ``grids``, their tables added to its inputs."""
+    inputs = list(snapshot.get("inputs") or [])
+    return {**snapshot, "grids": grids, "inputs": inputs + [g["path"] for g in grids if g["path"] not in inputs]}
 
 
 def add_grids(root: Path, snapshot: Mapping) -> dict:
@@ -535,14 +532,12 @@ def add_grids(root: Path, snapshot: Mapping) -> dict:
     if not new:
         raise SystemExit(f"party results: no grid table under {root} (`party vq_ablation` / `party gen_ablation` "
                          "write <ablation.out_dir>/<name>/table.md)")
-    head = _head(Path(root))              # points that recorded no commit: the workspace's
+    from party.tracking.run import _git_state
+    sha = _git_state(root).get("party.git_commit")       # points that recorded no commit: the workspace's
     for g in new:
-        g["commit"] = _grid_commit(g, head)
+        g["commit"] = _grid_commit(g, {"sha": sha} if sha not in (None, "unknown") else None)
     names = {g["name"] for g in new}
-    out = dict(snapshot)
-    out["grids"] = [g for g in snapshot.get("grids") or [] if g["name"] not in names] + new
-    out["inputs"] = [*(snapshot.get("inputs") or []), *(g["path"] for g in new if g["path"] not in (snapshot.get("inputs") or []))]
-    return out
+    return _with_grids(snapshot, [g for g in snapshot.get("grids") or [] if g["name"] not in names] + new)
 
 
 def keep_grids(new: dict, old: Mapping | None) -> dict:
@@ -561,10 +556,7 @@ def keep_grids(new: dict, old: Mapping | None) -> dict:
         g.setdefault("commit", ((old.get("commit") or {}).get("sha")))
         g["kept"] = True
         kept.append(g)
-    out = dict(new)
-    out["grids"] = [*(new.get("grids") or []), *kept]
-    out["inputs"] = [*(new.get("inputs") or []), *(g["path"] for g in kept if g["path"] not in new.get("inputs", []))]
-    return out
+    return _with_grids(new, [*(new.get("grids") or []), *kept])
 
 
 def write(root: Path = Path("."), out: Path = Path("docs"), keep: bool = True) -> tuple[Path, Path]:

@@ -176,16 +176,23 @@ class TextEncoder:
         texts = self._check(texts)
         if not texts:
             return torch.zeros(0, 0, self.dim), torch.zeros(0, dtype=torch.long)
+        return self._over_batches(texts, lambda b: (None, *self._tokens_batch(b)))[1:]
+
+    def _over_batches(self, texts: list[str], fn) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+        """``fn(batch) -> (sentence vectors or None, token features, lengths)`` over the length-sorted
+        batches, back in the caller's order, the token features zero-padded to the longest."""
         batches, inverse = self._batches(texts)
-        feats, lens = [], []
+        sents, feats, lens = [], [], []
         for b in batches:
             with self._autocast():
-                f, n = self._tokens_batch(b)
+                s, f, n = fn(b)
+            if s is not None:
+                sents.append(s.float().cpu())
             feats.append(f.float().cpu())
             lens.append(n.long().cpu())
         L = max(f.shape[1] for f in feats)
         feats = [F.pad(f, (0, 0, 0, L - f.shape[1])) for f in feats]
-        return torch.cat(feats)[inverse], torch.cat(lens)[inverse]
+        return (torch.cat(sents)[inverse] if sents else None), torch.cat(feats)[inverse], torch.cat(lens)[inverse]
 
     @torch.inference_mode()
     def encode_with_tokens(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -194,17 +201,7 @@ class TextEncoder:
         texts = self._check(texts)
         if not texts or type(self)._both_batch is TextEncoder._both_batch:
             return (self.encode(texts), *self.encode_tokens(texts))
-        batches, inverse = self._batches(texts)
-        sents, feats, lens = [], [], []
-        for b in batches:
-            with self._autocast():
-                s, f, n = self._both_batch(b)
-            sents.append(s.float().cpu())
-            feats.append(f.float().cpu())
-            lens.append(n.long().cpu())
-        L = max(f.shape[1] for f in feats)
-        feats = [F.pad(f, (0, 0, 0, L - f.shape[1])) for f in feats]
-        return torch.cat(sents)[inverse], torch.cat(feats)[inverse], torch.cat(lens)[inverse]
+        return self._over_batches(texts, self._both_batch)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(id={self.id!r}, dim={self.dim}, device={self.device})"

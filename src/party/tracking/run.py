@@ -17,12 +17,15 @@ from party.tracking.store import _ORPHANS_CLOSED, _experiment_id, _set_tracking_
 GENERATED = ("params.yaml", "dvc.lock", "metrics/", "conf/local/")
 
 
-def _git_state() -> dict[str, str]:
+def _git_state(root: str | os.PathLike | None = None) -> dict[str, str]:
     """``party.git_commit``; ``party.git_changed``: the tracked files that differ from it;
-    ``party.git_dirty``: whether any of those is more than a generated file (``GENERATED``)."""
+    ``party.git_dirty``: whether any of those is more than a generated file (``GENERATED``). Of the
+    checkout at ``root`` (default: the working folder's)."""
+    where = ["-C", str(root)] if root is not None else []
+
     def git(*args: str) -> str | None:
         try:
-            r = subprocess.run(["git", *args], capture_output=True, text=True, timeout=10)
+            r = subprocess.run(["git", *where, *args], capture_output=True, text=True, timeout=10)
         except (OSError, subprocess.TimeoutExpired):
             return None
         return r.stdout.rstrip("\n") if r.returncode == 0 else None   # porcelain lines start with a space
